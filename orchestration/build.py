@@ -1,0 +1,229 @@
+"""Build the project's FMUs (``python -m orchestration build``).
+
+Each FMU is a pythonfmu3 FMI 3.0 Co-Simulation FMU that carries its own package source as
+resources (DESIGN.md section 2): ``Tissue.fmu`` carries ``tissue_fmu``, and so on. No FMU carries
+another FMU's package.
+
+Two toolchain defects are handled here rather than hidden:
+
+* pythonfmu3 0.3.4's shared library has a use-after-free at process exit: the namespace-scope
+  ``std::shared_ptr<PyState> pyState`` is destroyed by its static destructor (run from
+  ``__run_exit_handlers``), and then the library's ``__attribute__((destructor))``
+  ``finalizePythonInterpreter`` assigns ``nullptr`` to the destroyed object, releasing the same
+  control block a second time. valgrind shows the invalid read in ``finalizePythonInterpreter``
+  of a block freed in ``__run_exit_handlers``. Whether the process then aborts ("corrupted
+  double-linked list", reported by the next ``free`` at exit, often libgfortran's exit handler)
+  depends on the heap layout, which is why numba compilation inside an FMU made it likely and
+  a host that compiled numba first made it rare. We build the export library from pythonfmu3's
+  own sources with one change: ``pyState`` becomes a reference to a heap object that is never
+  destroyed, so only ``finalizePythonInterpreter`` releases it, once.
+* Python FMUs in one process share one interpreter, so the entry script of each FMU gets a
+  unique module name (``<package>_entry``).
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+import subprocess
+import sys
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+logger = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+SRC = REPO_ROOT / "src"
+DEFAULT_FMU_DIR = REPO_ROOT / "fmus"
+BUILD_DIR = REPO_ROOT / "build"
+
+# The line in pythonfmu3 0.3.4's PySlaveInstance.cpp that holds the PyState with static storage
+# duration, and its replacement (a reference to a never-destroyed heap object).
+_PYSTATE_DECLARATION = "    std::shared_ptr<pythonfmu::PyState> pyState{};"
+_PYSTATE_PATCHED = (
+    "    // Patched by orchestration/build.py: never destroyed by a static destructor, so that\n"
+    "    // finalizePythonInterpreter() is the only owner that releases it (no use-after-free).\n"
+    "    std::shared_ptr<pythonfmu::PyState>& pyState = *new std::shared_ptr<pythonfmu::PyState>();"
+)
+
+
+class BuildError(RuntimeError):
+    """A build step failed; the message names the step and the fix."""
+
+
+@dataclass(frozen=True)
+class FmuSpec:
+    """One FMU of the project: its model identifier, the package it carries and its slave class."""
+
+    model_identifier: str
+    package: str
+    slave_module: str
+    slave_class: str
+
+    @property
+    def entry_module(self) -> str:
+        return f"{self.package}_entry"
+
+
+FMU_SPECS: dict[str, FmuSpec] = {
+    "Tissue": FmuSpec("Tissue", "tissue_fmu", "tissue_fmu.fmu", "TissueSlave"),
+    "Contact": FmuSpec("Contact", "haptic_fmu", "haptic_fmu.fmu", "ContactSlave"),
+    "Catheter": FmuSpec("Catheter", "catheter_fmu", "catheter_fmu.fmu", "CatheterSlave"),
+}
+
+
+def available_fmus() -> list[str]:
+    """FMUs whose package has an FMU layer in this checkout."""
+    return [name for name, spec in FMU_SPECS.items() if (SRC / spec.package / "fmu.py").exists()]
+
+
+def _pythonfmu3_dir() -> Path:
+    import pythonfmu3
+
+    return Path(pythonfmu3.__file__).resolve().parent
+
+
+def _platform_folder() -> str:
+    from pythonfmu3.osutil import get_platform
+
+    return get_platform()
+
+
+def export_library(build_dir: Path = BUILD_DIR) -> Path:
+    """Build (once, cached by source hash) the patched pythonfmu3 export library; return its path."""
+    source = _pythonfmu3_dir() / "pythonfmu-export"
+    instance_cpp = source / "src" / "pythonfmu" / "PySlaveInstance.cpp"
+    text = instance_cpp.read_text()
+    if _PYSTATE_DECLARATION not in text:
+        raise BuildError(
+            f"cannot apply the exit-time use-after-free fix: {instance_cpp} does not contain the expected "
+            f"declaration {_PYSTATE_DECLARATION.strip()!r}. This build supports pythonfmu3 0.3.4 (pinned in "
+            "pyproject.toml); reinstall it with `pip install -e .`."
+        )
+    digest = hashlib.sha256((text + _PYSTATE_PATCHED + sys.version).encode()).hexdigest()[:16]
+    work = build_dir / f"pythonfmu-export-{digest}"
+    lib_name = "libpythonfmu-export.so"
+    built = work / "resources" / "binaries" / _platform_folder() / lib_name
+    if built.exists():
+        return built
+
+    for tool in ("cmake", "c++"):
+        if shutil.which(tool) is None:
+            raise BuildError(
+                f"`{tool}` was not found on PATH: building the FMUs compiles pythonfmu3's export library "
+                "with a fix for its exit-time crash. Install a C++ compiler and CMake "
+                "(Debian: `apt-get install -y g++ cmake`) and run the build again."
+            )
+    if work.exists():
+        shutil.rmtree(work)
+    shutil.copytree(source, work / "export", ignore=shutil.ignore_patterns("build", "__pycache__"))
+    patched = work / "export" / "src" / "pythonfmu" / "PySlaveInstance.cpp"
+    patched.write_text(text.replace(_PYSTATE_DECLARATION, _PYSTATE_PATCHED))
+    # pythonfmu3's CMakeLists writes the library to <source>/../resources/binaries/<platform>.
+    cmake_build = work / "export" / "build"
+    cmake_build.mkdir()
+    logger.info("compiling the patched pythonfmu3 export library in %s", work)
+    steps = [
+        ["cmake", "..", "-DCMAKE_BUILD_TYPE=Release", f"-DPython3_EXECUTABLE={sys.executable}"],
+        ["cmake", "--build", ".", "-j2"],
+    ]
+    for cmd in steps:
+        proc = subprocess.run(cmd, cwd=cmake_build, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise BuildError(
+                f"`{' '.join(cmd)}` failed (exit {proc.returncode}) while building pythonfmu3's export library:\n"
+                f"{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
+            )
+    if not built.exists():
+        raise BuildError(f"the export library build finished but {built} is missing")
+    return built
+
+
+_ENTRY_TEMPLATE = '''"""FMU entry point of {model_identifier} (generated by orchestration/build.py).
+
+The unique module name keeps several Python FMUs loadable in one process; the class statement
+below is what pythonfmu3's loader looks for. Before the package (and its numba kernels) is
+imported, a content-keyed numba cache is enabled so that a new extraction of the FMU does not
+compile the kernels again.
+"""
+import importlib.util
+import pathlib
+
+from pythonfmu3 import Fmi3Slave
+
+_package_dir = pathlib.Path(__file__).resolve().parent / "{package}"
+_spec = importlib.util.spec_from_file_location("{package}_fmi_cache", _package_dir / "_fmi_support.py")
+_support = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_support)
+_support.enable_stable_numba_cache(_package_dir)
+
+from {slave_module} import {slave_class} as _Implementation
+
+
+class {model_identifier}(_Implementation, Fmi3Slave):
+    """{model_identifier}: see the package documentation of {package}."""
+'''
+
+
+def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
+    """Build one FMU by name (``Tissue``, ``Contact``, ``Catheter``) into ``dest``."""
+    from pythonfmu3.builder import FmuBuilder
+
+    if name not in FMU_SPECS:
+        raise BuildError(f"unknown FMU {name!r}: choose from {', '.join(FMU_SPECS)}")
+    spec = FMU_SPECS[name]
+    package_dir = SRC / spec.package
+    if not (package_dir / "fmu.py").exists():
+        raise BuildError(f"{name}: {package_dir / 'fmu.py'} does not exist in this checkout")
+    library = export_library()
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f"build_{name}_") as tmp:
+        tmp = Path(tmp)
+        entry = tmp / f"{spec.entry_module}.py"
+        entry.write_text(_ENTRY_TEMPLATE.format(**spec.__dict__, entry_module=spec.entry_module))
+        package_copy = tmp / spec.package
+        shutil.copytree(package_dir, package_copy, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc"))
+        # The builder imports the entry script to write modelDescription.xml; it must see the
+        # package copy that goes into the FMU, not whatever is installed.
+        sys.path.insert(0, str(tmp))
+        try:
+            fmu_path = FmuBuilder.build_FMU(entry, dest=tmp / "out", project_files=[package_copy])
+        finally:
+            sys.path.remove(str(tmp))
+        final = dest / fmu_path.name
+        _replace_binary(fmu_path, final, library, spec.model_identifier)
+    logger.info("built %s", final)
+    return final
+
+
+def _replace_binary(src_fmu: Path, dst_fmu: Path, library: Path, model_identifier: str) -> None:
+    """Copy the FMU archive, swapping the platform binary for the patched export library."""
+    target = f"binaries/{_platform_folder()}/{model_identifier}.so"
+    with zipfile.ZipFile(src_fmu) as zin, zipfile.ZipFile(dst_fmu, "w", zipfile.ZIP_DEFLATED) as zout:
+        names = zin.namelist()
+        if target not in names:
+            raise BuildError(f"{src_fmu.name} has no {target}: pythonfmu3 has no binary for this platform")
+        for item in zin.infolist():
+            if item.filename == target:
+                zout.write(library, arcname=target)
+            else:
+                zout.writestr(item, zin.read(item.filename))
+
+
+def build_all(names: list[str] | None = None, dest: Path = DEFAULT_FMU_DIR) -> list[Path]:
+    """Build the named FMUs (default: every FMU whose package exists) and return their paths."""
+    names = names or available_fmus()
+    return [build_fmu(name, dest) for name in names]
+
+
+def fmu_is_stale(name: str, dest: Path = DEFAULT_FMU_DIR) -> bool:
+    """True when the FMU is missing or older than any source file of its package."""
+    spec = FMU_SPECS[name]
+    fmu = Path(dest) / f"{spec.model_identifier}.fmu"
+    if not fmu.exists():
+        return True
+    newest = max(p.stat().st_mtime for p in (SRC / spec.package).rglob("*.py"))
+    return newest > fmu.stat().st_mtime

@@ -1,0 +1,204 @@
+"""The Tissue FMU: a thin FMI 3.0 Co-Simulation slave over :class:`tissue_fmu.model.TissueModel`.
+
+Every variable is declared once, here; the model does the work. Ports follow DESIGN.md
+section 4. Arrays are ``[n, 3]`` node-major, i.e. flat ``x0, y0, z0, x1, ...`` on the wire.
+
+Array sizes depend on the mesh, so they are structural parameters (``n_surface_nodes``,
+``n_surface_triangles``) whose start values are those of the default AAA mesh. A user who
+changes the mesh sizes or gives a mesh file sets them to the counts of that mesh; the FMU checks
+them when it leaves initialization mode and names the right values when they do not match
+(``python -m tissue_fmu.mesh_info`` prints them without an FMU).
+"""
+from __future__ import annotations
+
+import numpy as np
+from pythonfmu3 import (
+    DefaultExperiment,
+    Dimension,
+    Fmi3Causality,
+    Fmi3Slave,
+    Fmi3Variability,
+    Float64,
+    Int32,
+    String,
+    UInt64,
+)
+
+from ._fmi_support import GuardedSlaveMixin
+from .mesh import aaa_mesh, load_mesh
+from .model import TissueModel, TissueParameters
+
+C, V = Fmi3Causality, Fmi3Variability
+
+#: Mesh sizes of the built-in AAA generator exposed as parameters, with their defaults.
+AAA_SIZES = dict(aorta_radius=0.010, aneurysm_radius=0.025, aneurysm_length=0.060,
+                 segment_length=0.130, wall_thickness=0.0015)
+AAA_RESOLUTION = dict(n_circumferential=32, n_axial=40, n_radial=2)
+
+
+def _default_surface_counts() -> tuple[int, int]:
+    nodes, triangles = aaa_mesh(**AAA_SIZES, **AAA_RESOLUTION).surface()
+    return int(nodes.shape[0]), int(triangles.shape[0])
+
+
+class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
+    """Extended Tensor-Mass Model of the aneurysm wall (Tissue FMU)."""
+
+    forwarded_loggers = ("tissue_fmu",)
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.description = ("Extended Tensor-Mass Model of an abdominal aortic aneurysm wall "
+                            "(linear tensor-mass + non-linear and viscous tensors)")
+        self.author = "aaa-cosim"
+        self.version = "0.1.0"
+        self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=1.0 / 30.0)
+        self._setup_guard()
+        self._register_units()
+        self.model: TissueModel | None = None
+
+        self.time = 0.0
+        self.register_variable(Float64("time", causality=C.independent, variability=V.continuous,
+                                       description="simulation time", unit="s"))
+
+        defaults = TissueParameters()
+        self.communication_step = 1.0 / 30.0
+        self.young_modulus = defaults.young_modulus
+        self.poisson_ratio = defaults.poisson_ratio
+        self.density = defaults.density
+        self.viscosity = defaults.viscosity
+        self.law = defaults.law
+        self.integrator = defaults.integrator
+        self.substeps = 0  # 0 = automatic (smallest stable count)
+        self.cg_tolerance = defaults.cg_tolerance
+        self.cg_max_iterations = defaults.cg_max_iterations
+        self.nonlinear_strain_threshold = defaults.nonlinear_strain_threshold
+        self.clamp = ",".join(defaults.clamp)
+        self.active_radius = 0.0  # <= 0: the whole mesh is active
+        self.active_center = np.zeros(3)
+        self.mesh_file = ""
+        for name, value in {**AAA_SIZES, **AAA_RESOLUTION}.items():
+            setattr(self, name, value)
+        self.n_surface_nodes, self.n_surface_triangles = _default_surface_counts()
+
+        fixed = dict(causality=C.parameter, variability=V.fixed)
+        params = [
+            ("communication_step", "s", "fixed communication step size (enforced)"),
+            ("young_modulus", "Pa", "Young's modulus (small-strain); AAA wall 1.044 MPa"),
+            ("poisson_ratio", None, "Poisson ratio in (-1, 0.5)"),
+            ("density", "kg/m3", "mass density"),
+            ("viscosity", "Pa.s", "Kelvin-Voigt viscosity of the viscous tensor (0: off)"),
+            ("cg_tolerance", None, "relative residual of the implicit conjugate-gradient solve"),
+            ("nonlinear_strain_threshold", None, "Green strain above which ETMM corrects an element"),
+            ("active_radius", "m", "radius of the active region around active_center (<= 0: whole mesh)"),
+        ]
+        for name, unit, text in params:
+            kw = dict(fixed, description=text)
+            if unit:
+                kw["unit"] = unit
+            self.register_variable(Float64(name, **kw))
+        self._register_array("active_center", (3,), C.parameter, "centre of the active region", "m",
+                             [Dimension(start="3")], variability=V.fixed)
+        self.register_variable(String("law", **fixed, description="material law: linear, etmm or hyperelastic"))
+        self.register_variable(String("integrator", **fixed, description="implicit (backward Euler + CG) or explicit (symplectic Euler)"))
+        self.register_variable(String("clamp", **fixed, description="comma-separated node sets held at rest"))
+        self.register_variable(String("mesh_file", **fixed, description="tetrahedral mesh file (meshio format); empty: built-in AAA generator"))
+        self.register_variable(Int32("substeps", **fixed, description="explicit substeps per communication step (0: automatic)"))
+        self.register_variable(Int32("cg_max_iterations", **fixed, description="maximum conjugate-gradient iterations"))
+        for name in AAA_SIZES:
+            self.register_variable(Float64(name, **fixed, unit="m", description=f"AAA generator: {name.replace('_', ' ')}"))
+        for name in AAA_RESOLUTION:
+            self.register_variable(Int32(name, **fixed, description=f"AAA generator: {name.replace('_', ' ')} element count"))
+        structural = dict(causality=C.structuralParameter, variability=V.fixed)
+        self.register_variable(UInt64("n_surface_nodes", **structural, start=self.n_surface_nodes, description="surface nodes of the mesh (array size)"))
+        self.register_variable(UInt64("n_surface_triangles", **structural, start=self.n_surface_triangles, description="surface triangles of the mesh (array size)"))
+        n_vr = self.vars_by_name("n_surface_nodes").value_reference
+        t_vr = self.vars_by_name("n_surface_triangles").value_reference
+        per_node = [Dimension(valueReference=str(n_vr)), Dimension(start="3")]
+
+        self._register_array("contact_force", (self.n_surface_nodes, 3), C.input,
+                             "nodal contact forces on the surface nodes", "N", per_node)
+        self._register_array("surface_positions", (self.n_surface_nodes, 3), C.output,
+                             "positions of the surface nodes", "m", per_node)
+        self._register_array("surface_velocities", (self.n_surface_nodes, 3), C.output,
+                             "velocities of the surface nodes", "m/s", per_node)
+        self.surface_triangles = np.zeros((self.n_surface_triangles, 3), dtype=np.int64)
+        self.register_variable(Int32("surface_triangles", causality=C.calculatedParameter, variability=V.fixed,
+                                     description="surface triangles (indices into the surface nodes, outward)",
+                                     dimensions=[Dimension(valueReference=str(t_vr)), Dimension(start="3")],
+                                     getter=lambda: self.surface_triangles.ravel().tolist()))
+
+        self.strain_energy = 0.0
+        self.kinetic_energy = 0.0
+        self.max_strain = 0.0
+        self.nonlinear_fraction = 0.0
+        self.solver_residual = 0.0
+        self.critical_time_step = 0.0
+        self.solver_iterations = 0
+        for name, unit, text in [
+            ("strain_energy", "J", "elastic strain energy"),
+            ("kinetic_energy", "J", "kinetic energy"),
+            ("max_strain", None, "largest principal Green strain magnitude"),
+            ("nonlinear_fraction", None, "fraction of active elements that paid for the non-linear correction"),
+            ("solver_residual", None, "relative residual of the last implicit solve"),
+            ("critical_time_step", "s", "explicit stability limit of the current mesh and material"),
+        ]:
+            kw = dict(causality=C.output, variability=V.continuous, description=text)
+            if unit:
+                kw["unit"] = unit
+            self.register_variable(Float64(name, **kw))
+        self.register_variable(Int32("solver_iterations", causality=C.output, variability=V.discrete,
+                                     description="iterations of the last implicit solve (substeps when explicit)"))
+
+    def vars_by_name(self, name: str):
+        return next(v for v in self.vars.values() if v.name == name)
+
+    # -- model delegation -----------------------------------------------------------------------
+    def _parameters(self) -> TissueParameters:
+        active = None
+        if self.active_radius > 0:
+            active = (*map(float, self.active_center), float(self.active_radius))
+        clamp = tuple(name.strip() for name in str(self.clamp).split(",") if name.strip())
+        return TissueParameters(
+            young_modulus=float(self.young_modulus), poisson_ratio=float(self.poisson_ratio),
+            density=float(self.density), viscosity=float(self.viscosity), law=str(self.law),
+            integrator=str(self.integrator), substeps="auto" if int(self.substeps) == 0 else int(self.substeps),
+            cg_tolerance=float(self.cg_tolerance), cg_max_iterations=int(self.cg_max_iterations),
+            clamp=clamp, active_region=active,
+            nonlinear_strain_threshold=float(self.nonlinear_strain_threshold),
+        )
+
+    def _initialize_model(self) -> None:
+        params = self._parameters()
+        params.validate()  # parameter errors before the (slower) mesh work
+        if self.mesh_file:
+            mesh = load_mesh(self.mesh_file)
+        else:
+            mesh = aaa_mesh(**{k: float(getattr(self, k)) for k in AAA_SIZES},
+                            **{k: int(getattr(self, k)) for k in AAA_RESOLUTION})
+        model = TissueModel(mesh, params)
+        if (model.n_surface, len(model.surface_triangles)) != (self.n_surface_nodes, self.n_surface_triangles):
+            raise ValueError(
+                f"the mesh has {model.n_surface} surface nodes and {len(model.surface_triangles)} surface "
+                f"triangles, but n_surface_nodes = {self.n_surface_nodes} and n_surface_triangles = "
+                f"{self.n_surface_triangles}: set these structural parameters to {model.n_surface} and "
+                f"{len(model.surface_triangles)}"
+            )
+        self.model = model
+        self.surface_triangles[...] = model.surface_triangles
+
+    def _step_model(self, t: float, dt: float) -> None:
+        self.model.set_contact_force(self.contact_force)
+        self.model.step(t, dt)
+
+    def _publish_outputs(self) -> None:
+        model = self.model
+        self.surface_positions[...] = model.surface_positions()
+        self.surface_velocities[...] = model.surface_velocities()
+        self.strain_energy = model.strain_energy
+        self.kinetic_energy = model.kinetic_energy
+        self.max_strain = model.max_strain
+        self.nonlinear_fraction = model.nonlinear_fraction
+        self.solver_residual = float(model.solver_residual)
+        self.critical_time_step = model.critical_time_step
+        self.solver_iterations = int(model.solver_iterations)
