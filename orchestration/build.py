@@ -190,7 +190,8 @@ def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
         # package copy that goes into the FMU, not whatever is installed.
         sys.path.insert(0, str(tmp))
         try:
-            fmu_path = FmuBuilder.build_FMU(entry, dest=tmp / "out", project_files=[package_copy])
+            fmu_path = FmuBuilder.build_FMU(entry, dest=tmp / "out", project_files=[package_copy],
+                                           canHandleVariableCommunicationStepSize=False)
         finally:
             sys.path.remove(str(tmp))
         final = dest / fmu_path.name

@@ -37,6 +37,7 @@ SI_UNITS = {
     "N/m": dict(kg=1, s=-2),
     "N.s/m": dict(kg=1, s=-1),
     "rad": dict(rad=1),
+    "rad/s": dict(rad=1, s=-1),
     "Hz": dict(s=-1),
     "N.m2": dict(kg=1, m=3, s=-2),
 }

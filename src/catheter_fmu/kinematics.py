@@ -1,0 +1,88 @@
+"""Catheter shape: a chain of equal rigid links that follows the vessel centerline, with a
+distal active section bent as a discrete constant-curvature arc.
+
+Shape model (``n_segments`` links of length ``l``, the last ``n_active`` of them active):
+
+- The inserted length ``s = insertion`` is measured along the centerline from the entry
+  point. The active section's base sits on the centerline at ``s_b = s - n_active * l``; the
+  proximal links hang back from it along the curve, each joint on the curve and exactly ``l``
+  from the next (sphere-curve intersection, see ``CenterlineCurve.chain_back``). Joints with
+  ``s < 0`` lie outside the body on the entry ray.
+- The active section starts at the base with the curve's smoothed tangent ``t`` and bends by a
+  total angle ``beta`` toward the unit direction ``d`` in the normal plane (``d`` from the bend
+  vector given in the base frame (e1, e2)). Link ``j = 1..n_active`` points along
+  ``cos((j - 1/2) phi) t + sin((j - 1/2) phi) d`` with ``phi = beta / n_active``: every joint lies
+  on the circular arc of curvature ``kappa = beta / (n_active l)`` through the base (a regular
+  inscribed polygon), every link keeps length ``l`` exactly, and the tip tangent is turned by
+  ``beta - phi / 2`` (the arc tangent by ``beta``).
+- Small-bend tip displacement: lateral ``L beta / 2``, axial shortening ``L beta^2 / 6`` with
+  ``L = n_active l`` (same as the continuous arc to first order).
+
+The tip position is continuous in (insertion, rotation, bend): positions and the smoothed
+tangent are continuous in ``s`` and the parallel-transported frame is continuous too.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .geometry import CenterlineCurve
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CatheterKinematics"]
+
+
+class CatheterKinematics:
+    """Positions of the ``n_segments + 1`` joints (proximal end first, tip last).
+
+    Inputs are trusted (validated by ``CatheterModel``); arrays are preallocated once.
+    """
+
+    def __init__(self, curve: CenterlineCurve, n_segments: int, segment_length: float, n_active: int) -> None:
+        self.curve = curve
+        self.n_segments = int(n_segments)
+        self.segment_length = float(segment_length)
+        self.n_active = int(n_active)
+        self.active_length = self.n_active * self.segment_length
+        self.positions = np.zeros((self.n_segments + 1, 3))
+        # Link angles (j - 1/2) / n_active in units of the total bend angle.
+        self._link_fraction = (np.arange(1, self.n_active + 1) - 0.5) / self.n_active
+
+    def base_frame(self, insertion: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(base point, tangent t, e1, e2) of the active section for this insertion."""
+        s_b = insertion - self.active_length
+        t, e1, e2 = self.curve.frame(s_b)
+        return self.curve.point(s_b), t, e1, e2
+
+    def active_chain(
+        self, base: np.ndarray, t: np.ndarray, e1: np.ndarray, e2: np.ndarray, bend_vector: tuple[float, float]
+    ) -> np.ndarray:
+        """Joints (n_active, 3) after the base for bend vector (b1, b2) in the (e1, e2) frame (rad)."""
+        b1, b2 = bend_vector
+        beta = math.hypot(b1, b2)
+        if beta > 0.0:
+            d = (b1 * e1 + b2 * e2) / beta
+        else:
+            d = e1
+        ang = beta * self._link_fraction
+        links = np.cos(ang)[:, None] * t + np.sin(ang)[:, None] * d
+        return base + self.segment_length * np.cumsum(links, axis=0)
+
+    def shape(self, insertion: float, bend_vector: tuple[float, float], frame=None) -> np.ndarray:
+        """Fill and return ``self.positions`` for this insertion (m) and bend vector (rad).
+
+        ``frame`` may pass a precomputed ``base_frame(insertion)`` to avoid recomputing it.
+        """
+        base, t, e1, e2 = self.base_frame(insertion) if frame is None else frame
+        n_prox = self.n_segments - self.n_active
+        pos = self.positions
+        if n_prox:
+            s_b = insertion - self.active_length
+            pos[n_prox - 1 :: -1] = self.curve.chain_back(s_b, n_prox, self.segment_length)
+        pos[n_prox] = base
+        pos[n_prox + 1 :] = self.active_chain(base, t, e1, e2, bend_vector)
+        return pos
