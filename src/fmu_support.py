@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from pythonfmu3 import Dimension, Fmi3Causality, Fmi3Status, Fmi3StepResult, Fmi3Variability, Float64
+from pythonfmu3 import Dimension, Fmi3Causality, Fmi3Status, Fmi3StepResult, Fmi3Variability, Float64, Int32, UInt64
 from pythonfmu3.unit import Unit
 
 #: Units used across the project's ports (SI; DESIGN.md section 4).
@@ -196,14 +196,49 @@ class GuardedSlaveMixin:
     def _register_units(self) -> None:
         self.register_units([Unit(name, **dims) for name, dims in SI_UNITS.items()])
 
-    def _register_array(self, name: str, shape: tuple, causality: Fmi3Causality, description: str,
-                        unit: str | None, dimensions: list[Dimension], variability=Fmi3Variability.continuous,
-                        finite: bool = True) -> None:
-        """Declare a Float64 array port backed by ``self.<name>`` (a float64 ndarray of ``shape``).
+    def _register_structural(self, name: str, value: int, description: str) -> None:
+        """Declare a UInt64 structural parameter that sizes arrays; setting it resizes them."""
+        setattr(self, name, int(value))
 
-        The setter checks size and finiteness and records a logged error instead of raising.
+        def setter(new_value):
+            try:
+                new_value = int(new_value.value if hasattr(new_value, "value") else new_value)
+                if new_value < 1:
+                    raise ValueError(f"{name} must be >= 1 (got {new_value})")
+                setattr(self, name, new_value)
+                for array_name, (shape, dtype) in self._sized_arrays.items():
+                    if name in shape:
+                        setattr(self, array_name, np.zeros(self._resolve(shape), dtype=dtype))
+            except Exception as exc:
+                self._fail(f"fmi3SetUInt64({name})", str(exc))
+
+        self.register_variable(UInt64(name, causality=Fmi3Causality.structuralParameter,
+                                      variability=Fmi3Variability.fixed, start=int(value),
+                                      description=description, getter=lambda: getattr(self, name),
+                                      setter=setter))
+
+    def _resolve(self, shape: tuple) -> tuple:
+        return tuple(int(getattr(self, d)) if isinstance(d, str) else int(d) for d in shape)
+
+    def _register_array(self, name: str, shape: tuple, causality: Fmi3Causality, description: str,
+                        unit: str | None = None, variability=Fmi3Variability.continuous,
+                        dtype=np.float64, on_set: Callable[[], None] | None = None) -> None:
+        """Declare an array port backed by ``self.<name>`` (an ndarray).
+
+        ``shape`` holds ints and names of structural parameters (declared before), e.g.
+        ``("n_surface_nodes", 3)``; setting such a parameter reallocates the array. Float64 arrays
+        must be finite. The setter checks size and values and records a logged error instead of
+        raising; ``on_set`` is called after each accepted value (e.g. to mark a new tissue frame).
         """
-        setattr(self, name, np.zeros(shape))
+        if not hasattr(self, "_sized_arrays"):
+            self._sized_arrays = {}
+        self._sized_arrays[name] = (tuple(shape), dtype)
+        setattr(self, name, np.zeros(self._resolve(shape), dtype=dtype))
+        references = {v.name: v.value_reference for v in self.vars.values()}
+        dimensions = [Dimension(valueReference=str(references[d])) if isinstance(d, str) else Dimension(start=str(d))
+                      for d in shape]
+        is_float = dtype == np.float64
+        call = f"fmi3Set{'Float64' if is_float else 'Int32'}({name})"
 
         def getter():
             return getattr(self, name).ravel().tolist()
@@ -214,22 +249,27 @@ class GuardedSlaveMixin:
                 current = getattr(self, name)
                 if array.size != current.size:
                     raise ValueError(f"{name} expects {current.size} values, got {array.size}")
-                if finite and not np.all(np.isfinite(array)):
+                if not np.all(np.isfinite(array)):
                     bad = np.flatnonzero(~np.isfinite(array))
                     raise ValueError(
                         f"{name} contains {bad.size} NaN/Inf value(s) (first at flat index {int(bad[0])}); "
                         "check the FMU or source connected to this input"
                     )
                 current[...] = array.reshape(current.shape)
+                if on_set is not None:
+                    on_set()
             except Exception as exc:
-                self._fail(f"fmi3SetFloat64({name})", str(exc))
+                self._fail(call, str(exc))
 
         def reject(values):
-            self._fail(f"fmi3SetFloat64({name})", f"{name} is an output and cannot be set")
+            self._fail(call, f"{name} is an output and cannot be set")
 
         writable = causality in (Fmi3Causality.input, Fmi3Causality.parameter)
         kwargs = dict(causality=causality, description=description, dimensions=dimensions,
                       getter=getter, setter=setter if writable else reject, variability=variability)
-        if unit:
-            kwargs["unit"] = unit
-        self.register_variable(Float64(name, **kwargs))
+        if is_float:
+            if unit:
+                kwargs["unit"] = unit
+            self.register_variable(Float64(name, **kwargs))
+        else:
+            self.register_variable(Int32(name, **kwargs))

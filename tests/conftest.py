@@ -24,3 +24,8 @@ def tissue_fmu(fmu_dir) -> Path:
 @pytest.fixture(scope="session")
 def catheter_fmu(fmu_dir) -> Path:
     return build_fmu("Catheter", fmu_dir)
+
+
+@pytest.fixture(scope="session")
+def contact_fmu(fmu_dir) -> Path:
+    return build_fmu("Contact", fmu_dir)

@@ -9,13 +9,11 @@ import numpy as np
 from pythonfmu3 import (
     Boolean,
     DefaultExperiment,
-    Dimension,
     Fmi3Causality,
     Fmi3Slave,
     Fmi3Variability,
     Float64,
     String,
-    UInt64,
 )
 
 from ._fmi_support import GuardedSlaveMixin
@@ -45,7 +43,7 @@ FLOAT_PARAMETERS = [
 class CatheterSlave(GuardedSlaveMixin, Fmi3Slave):
     """Active catheter with an effort-regulating tip controller (Catheter FMU)."""
 
-    forwarded_loggers = ("catheter_fmu",)
+    forwarded_loggers = (__name__.rsplit(".", 1)[0],)  # this package, under whatever name it was imported
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
@@ -77,17 +75,12 @@ class CatheterSlave(GuardedSlaveMixin, Fmi3Slave):
         self.register_variable(Boolean("anti_windup", **fixed, description="stop integrating while the actuator saturates"))
 
         default_centerline = np.array(CenterlineCurve.aaa_default().vertices, dtype=float)
-        structural = dict(causality=C.structuralParameter, variability=V.fixed)
-        self.n_tool_points = defaults.n_segments + 1
-        self.n_centerline_points = len(default_centerline)
-        self.register_variable(UInt64("n_tool_points", **structural, start=self.n_tool_points,
-                                      description="catheter centerline points (segments + 1)"))
-        self.register_variable(UInt64("n_centerline_points", **structural, start=self.n_centerline_points,
-                                      description="vertices of the vessel centerline polyline"))
-        vr = {v.name: v.value_reference for v in self.vars.values()}
-        self._register_array("centerline_points", (self.n_centerline_points, 3), C.parameter,
+        self._register_structural("n_tool_points", defaults.n_segments + 1,
+                                  "catheter centerline points (segments + 1)")
+        self._register_structural("n_centerline_points", len(default_centerline),
+                                  "vertices of the vessel centerline polyline")
+        self._register_array("centerline_points", ("n_centerline_points", 3), C.parameter,
                              "vessel centerline polyline the catheter follows (entry first)", "m",
-                             [Dimension(valueReference=str(vr["n_centerline_points"])), Dimension(start="3")],
                              variability=V.fixed)
         self.centerline_points[...] = default_centerline
 
@@ -100,13 +93,10 @@ class CatheterSlave(GuardedSlaveMixin, Fmi3Slave):
                                        start=0.0, description="catheter rotation from the operator/device"))
         self.register_variable(Float64("external_command", causality=C.input, variability=V.continuous,
                                        unit="rad", start=0.0, description="actuator command in mode external"))
-        self._register_array("tip_force", (3,), C.input, "contact force on the tip (from Contact)", "N",
-                             [Dimension(start="3")])
-
-        per_point = [Dimension(valueReference=str(vr["n_tool_points"])), Dimension(start="3")]
-        self._register_array("centerline_positions", (self.n_tool_points, 3), C.output,
-                             "catheter centerline points, proximal first, tip last", "m", per_point)
-        self._register_array("tip_position", (3,), C.output, "tip position", "m", [Dimension(start="3")])
+        self._register_array("tip_force", (3,), C.input, "contact force on the tip (from Contact)", "N")
+        self._register_array("centerline_positions", ("n_tool_points", 3), C.output,
+                             "catheter centerline points, proximal first, tip last", "m")
+        self._register_array("tip_position", (3,), C.output, "tip position", "m")
         self.bend_angle = 0.0
         self.actuator_command = 0.0
         self.advised_insertion_scale = 1.0

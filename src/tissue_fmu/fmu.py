@@ -14,14 +14,12 @@ from __future__ import annotations
 import numpy as np
 from pythonfmu3 import (
     DefaultExperiment,
-    Dimension,
     Fmi3Causality,
     Fmi3Slave,
     Fmi3Variability,
     Float64,
     Int32,
     String,
-    UInt64,
 )
 
 from ._fmi_support import GuardedSlaveMixin
@@ -44,7 +42,7 @@ def _default_surface_counts() -> tuple[int, int]:
 class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
     """Extended Tensor-Mass Model of the aneurysm wall (Tissue FMU)."""
 
-    forwarded_loggers = ("tissue_fmu",)
+    forwarded_loggers = (__name__.rsplit(".", 1)[0],)  # this package, under whatever name it was imported
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
@@ -79,7 +77,6 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
         self.mesh_file = ""
         for name, value in {**AAA_SIZES, **AAA_RESOLUTION}.items():
             setattr(self, name, value)
-        self.n_surface_nodes, self.n_surface_triangles = _default_surface_counts()
 
         fixed = dict(causality=C.parameter, variability=V.fixed)
         params = [
@@ -98,7 +95,7 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
                 kw["unit"] = unit
             self.register_variable(Float64(name, **kw))
         self._register_array("active_center", (3,), C.parameter, "centre of the active region", "m",
-                             [Dimension(start="3")], variability=V.fixed)
+                             variability=V.fixed)
         self.register_variable(String("law", **fixed, description="material law: linear, etmm or hyperelastic"))
         self.register_variable(String("integrator", **fixed, description="implicit (backward Euler + CG) or explicit (symplectic Euler)"))
         self.register_variable(String("clamp", **fixed, description="comma-separated node sets held at rest"))
@@ -109,24 +106,16 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
             self.register_variable(Float64(name, **fixed, unit="m", description=f"AAA generator: {name.replace('_', ' ')}"))
         for name in AAA_RESOLUTION:
             self.register_variable(Int32(name, **fixed, description=f"AAA generator: {name.replace('_', ' ')} element count"))
-        structural = dict(causality=C.structuralParameter, variability=V.fixed)
-        self.register_variable(UInt64("n_surface_nodes", **structural, start=self.n_surface_nodes, description="surface nodes of the mesh (array size)"))
-        self.register_variable(UInt64("n_surface_triangles", **structural, start=self.n_surface_triangles, description="surface triangles of the mesh (array size)"))
-        n_vr = self.vars_by_name("n_surface_nodes").value_reference
-        t_vr = self.vars_by_name("n_surface_triangles").value_reference
-        per_node = [Dimension(valueReference=str(n_vr)), Dimension(start="3")]
-
-        self._register_array("contact_force", (self.n_surface_nodes, 3), C.input,
-                             "nodal contact forces on the surface nodes", "N", per_node)
-        self._register_array("surface_positions", (self.n_surface_nodes, 3), C.output,
-                             "positions of the surface nodes", "m", per_node)
-        self._register_array("surface_velocities", (self.n_surface_nodes, 3), C.output,
-                             "velocities of the surface nodes", "m/s", per_node)
-        self.surface_triangles = np.zeros((self.n_surface_triangles, 3), dtype=np.int64)
-        self.register_variable(Int32("surface_triangles", causality=C.calculatedParameter, variability=V.fixed,
-                                     description="surface triangles (indices into the surface nodes, outward)",
-                                     dimensions=[Dimension(valueReference=str(t_vr)), Dimension(start="3")],
-                                     getter=lambda: self.surface_triangles.ravel().tolist()))
+        n_nodes, n_triangles = _default_surface_counts()
+        self._register_structural("n_surface_nodes", n_nodes, "surface nodes of the mesh (array size)")
+        self._register_structural("n_surface_triangles", n_triangles, "surface triangles of the mesh (array size)")
+        per_node = ("n_surface_nodes", 3)
+        self._register_array("contact_force", per_node, C.input, "nodal contact forces on the surface nodes", "N")
+        self._register_array("surface_positions", per_node, C.output, "positions of the surface nodes", "m")
+        self._register_array("surface_velocities", per_node, C.output, "velocities of the surface nodes", "m/s")
+        self._register_array("surface_triangles", ("n_surface_triangles", 3), C.calculatedParameter,
+                             "surface triangles (indices into the surface nodes, outward)",
+                             variability=V.fixed, dtype=np.int32)
 
         self.strain_energy = 0.0
         self.kinetic_energy = 0.0
@@ -149,9 +138,6 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
             self.register_variable(Float64(name, **kw))
         self.register_variable(Int32("solver_iterations", causality=C.output, variability=V.discrete,
                                      description="iterations of the last implicit solve (substeps when explicit)"))
-
-    def vars_by_name(self, name: str):
-        return next(v for v in self.vars.values() if v.name == name)
 
     # -- model delegation -----------------------------------------------------------------------
     def _parameters(self) -> TissueParameters:

@@ -1,0 +1,178 @@
+"""Numba kernels of the axis-aligned bounding-box (AABB) tree used as CCD broad phase.
+
+Flat layout (no objects, numba-friendly): node arrays `node_lo`, `node_hi` (n_nodes, 3), `left`,
+`right` (child ids, -1 for a leaf), `start`, `count` (a leaf holds primitives
+order[start:start+count]). Nodes are created breadth-first, so every child id is larger than its
+parent's: a reverse sweep over the node ids is a valid bottom-up order for refitting.
+Boxes are closed: two boxes overlap when lo_a <= hi_b and lo_b <= hi_a on every axis.
+"""
+import numpy as np
+from numba import njit
+
+# Median splits give depth <= ceil(log2(m)) + 1 <= 65 for any m < 2**63; a pairwise traversal
+# stack grows by at most one entry per level of each tree.
+STACK_SIZE = 256
+
+
+@njit(cache=True)
+def _union_of_primitives(lo, hi, order, s, c, node_lo, node_hi, node):
+    for a in range(3):
+        node_lo[node, a] = np.inf
+        node_hi[node, a] = -np.inf
+    for k in range(s, s + c):
+        p = order[k]
+        for a in range(3):
+            node_lo[node, a] = min(node_lo[node, a], lo[p, a])
+            node_hi[node, a] = max(node_hi[node, a], hi[p, a])
+
+
+@njit(cache=True)
+def build_tree(lo, hi, leaf_size, order, node_lo, node_hi, left, right, start, count):
+    """Top-down median split on the widest centroid axis. Arrays sized for 2m nodes; returns n_nodes."""
+    m = lo.shape[0]
+    for i in range(m):
+        order[i] = i
+    start[0] = 0
+    count[0] = m
+    n_nodes = 1
+    node = 0
+    keys = np.empty(m)
+    tmp = np.empty(m, dtype=np.int64)
+    while node < n_nodes:
+        s = start[node]
+        c = count[node]
+        _union_of_primitives(lo, hi, order, s, c, node_lo, node_hi, node)
+        if c <= leaf_size:
+            left[node] = -1
+            right[node] = -1
+            node += 1
+            continue
+        # widest axis of the primitive centres (sums, not means: same ordering, one rounding less)
+        best_axis = 0
+        best_extent = -1.0
+        for a in range(3):
+            c_lo = np.inf
+            c_hi = -np.inf
+            for k in range(s, s + c):
+                x = lo[order[k], a] + hi[order[k], a]
+                c_lo = min(c_lo, x)
+                c_hi = max(c_hi, x)
+            if c_hi - c_lo > best_extent:
+                best_extent = c_hi - c_lo
+                best_axis = a
+        for k in range(c):
+            p = order[s + k]
+            keys[k] = lo[p, best_axis] + hi[p, best_axis]
+        perm = np.argsort(keys[:c], kind="mergesort")
+        for k in range(c):
+            tmp[k] = order[s + perm[k]]
+        for k in range(c):
+            order[s + k] = tmp[k]
+        half = c // 2
+        left[node] = n_nodes
+        right[node] = n_nodes + 1
+        start[n_nodes] = s
+        count[n_nodes] = half
+        start[n_nodes + 1] = s + half
+        count[n_nodes + 1] = c - half
+        n_nodes += 2
+        node += 1
+    return n_nodes
+
+
+@njit(cache=True)
+def refit_tree(lo, hi, order, n_nodes, node_lo, node_hi, left, right, start, count):
+    """Recompute node boxes bottom-up for new primitive boxes, same topology: O(m)."""
+    for node in range(n_nodes - 1, -1, -1):
+        if left[node] < 0:
+            _union_of_primitives(lo, hi, order, start[node], count[node], node_lo, node_hi, node)
+        else:
+            l = left[node]
+            r = right[node]
+            for a in range(3):
+                node_lo[node, a] = min(node_lo[l, a], node_lo[r, a])
+                node_hi[node, a] = max(node_hi[l, a], node_hi[r, a])
+
+
+@njit(cache=True)
+def _overlap(alo, ahi, i, blo, bhi, j):
+    for a in range(3):
+        if alo[i, a] > bhi[j, a] or blo[j, a] > ahi[i, a]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def query_tree_tree(a_lo, a_hi, a_order, a_node_lo, a_node_hi, a_left, a_right, a_start, a_count,
+                    b_lo, b_hi, b_order, b_node_lo, b_node_hi, b_left, b_right, b_start, b_count, out):
+    """Primitive pairs (i of a, j of b) with overlapping boxes, by simultaneous descent.
+
+    Writes up to out.shape[0] pairs; returns the total count (rerun with a larger out if bigger).
+    """
+    capacity = out.shape[0]
+    found = 0
+    stack = np.empty((STACK_SIZE, 2), dtype=np.int64)
+    stack[0, 0] = 0
+    stack[0, 1] = 0
+    top = 1
+    while top > 0:
+        top -= 1
+        na = stack[top, 0]
+        nb = stack[top, 1]
+        if not _overlap(a_node_lo, a_node_hi, na, b_node_lo, b_node_hi, nb):
+            continue
+        a_leaf = a_left[na] < 0
+        b_leaf = b_left[nb] < 0
+        if a_leaf and b_leaf:
+            for ka in range(a_start[na], a_start[na] + a_count[na]):
+                i = a_order[ka]
+                for kb in range(b_start[nb], b_start[nb] + b_count[nb]):
+                    j = b_order[kb]
+                    if _overlap(a_lo, a_hi, i, b_lo, b_hi, j):
+                        if found < capacity:
+                            out[found, 0] = i
+                            out[found, 1] = j
+                        found += 1
+        elif b_leaf or (not a_leaf and a_count[na] >= b_count[nb]):
+            # descend the larger (or the only inner) node
+            stack[top, 0] = a_left[na]
+            stack[top, 1] = nb
+            stack[top + 1, 0] = a_right[na]
+            stack[top + 1, 1] = nb
+            top += 2
+        else:
+            stack[top, 0] = na
+            stack[top, 1] = b_left[nb]
+            stack[top + 1, 0] = na
+            stack[top + 1, 1] = b_right[nb]
+            top += 2
+    return found
+
+
+@njit(cache=True)
+def query_tree_boxes(lo, hi, order, node_lo, node_hi, left, right, start, count, q_lo, q_hi, out):
+    """Pairs (primitive i of the tree, query box j) with overlapping boxes; returns the total count."""
+    capacity = out.shape[0]
+    found = 0
+    stack = np.empty(STACK_SIZE, dtype=np.int64)
+    for j in range(q_lo.shape[0]):
+        stack[0] = 0
+        top = 1
+        while top > 0:
+            top -= 1
+            node = stack[top]
+            if not _overlap(node_lo, node_hi, node, q_lo, q_hi, j):
+                continue
+            if left[node] < 0:
+                for k in range(start[node], start[node] + count[node]):
+                    i = order[k]
+                    if _overlap(lo, hi, i, q_lo, q_hi, j):
+                        if found < capacity:
+                            out[found, 0] = i
+                            out[found, 1] = j
+                        found += 1
+            else:
+                stack[top] = left[node]
+                stack[top + 1] = right[node]
+                top += 2
+    return found

@@ -1,0 +1,120 @@
+"""Passivity observer and controller of the haptic port (Hannaford and Ryu 2002).
+
+Sign convention (chosen here): E is the energy that has flowed INTO the virtual environment
+through the haptic port, i.e. the work done BY the device ON the environment:
+
+    E(n) = - sum_{j=1..n} F(j-1) . (x(j) - x(j-1))
+
+where F is the force the environment applies to the tool/device (the `tool_force` output) and x
+the tool position. The force computed at sample j-1 is held over [t(j-1), t(j)] (zero-order hold),
+so the displacement over that interval is the exact conjugate of the held force; with constant
+velocity this is the usual sum F v T. A passive environment has E(n) >= 0 at all n (it can only
+store or dissipate what the device gave it); E(n) < 0 means the environment has generated energy
+(it is active, the seed of sampled-wall instability). For several tool points the port is the
+set of points and the products are summed.
+
+Passivity controller: when the observed E(n) < 0 it adds a variable damping on the tool,
+F <- F - alpha v with alpha = -E(n) / (T v . v), which dissipates over the next sample exactly
+the energy the environment has generated (alpha = 0 while E >= 0). The damping is held over a
+sample like any rendered force, so alpha must stay below about 2 m / T for a device of mass m
+(a held damper above that overshoots and is itself active: with a small |v| the unbounded gain
+blows up); `max_damping` caps it (m / T dissipates the most per sample), and whatever energy the
+cap leaves undissipated is taken over the following samples.
+"""
+import math
+
+import numpy as np
+
+from . import kernels
+
+
+class PassivityError(ValueError):
+    """Invalid input to the passivity observer/controller."""
+
+
+class PassivityObserver:
+    """Energy that has flowed into the environment through the haptic port (>= 0 when passive)."""
+
+    def __init__(self):
+        self.energy = 0.0
+        self.min_energy = 0.0
+        self._force = None       # force held since the previous sample (on the tool)
+        self._position = None
+
+    def reset(self) -> None:
+        self.__init__()
+
+    def update(self, position, force) -> float:
+        """Record sample n: the tool position x(n) and the force F(n) that will be held until the
+        next sample. Adds the work of the previously held force over x(n) - x(n-1); returns E(n)."""
+        x = np.asarray(position, np.float64)
+        f = np.asarray(force, np.float64)
+        if self._position is not None:
+            self.energy -= float(np.sum(self._force * (x - self._position)))
+            self.min_energy = min(self.min_energy, self.energy)
+        self._position = x.copy()
+        self._force = f.copy()
+        return self.energy
+
+    def observe(self, position) -> float:
+        """E(n) including the work of the held force up to `position`, without recording a sample."""
+        if self._position is None:
+            return self.energy
+        return self.energy - float(np.sum(self._force * (np.asarray(position, np.float64) - self._position)))
+
+
+def controller_damping(energy: float, velocity, period: float, max_damping: float = math.inf) -> float:
+    """Passivity controller gain alpha = min(-E / (T v.v), max_damping) when E < 0, else 0 (N s/m)."""
+    if period <= 0.0:
+        raise PassivityError(f"period must be > 0 (got {period}): give the haptic sample time in s")
+    vv = float(np.sum(np.square(velocity)))
+    if energy >= 0.0 or vv <= 0.0:
+        return 0.0
+    return min(-energy / (period * vv), max_damping)
+
+
+class PassiveRenderer:
+    """Observer + optional controller around a force source, one call per haptic sample.
+
+    `render(position, velocity, force)` observes the port with the raw `force` (on the tool; arrays
+    (n, 3)), and if the controller is on and the port has turned active, adds -alpha v; returns the
+    force to apply (held until the next sample) and records it for the next energy increment.
+    Same arithmetic as PassivityObserver + controller_damping, in one numba kernel (hot path).
+    """
+
+    def __init__(self, period: float, controller: bool = True, max_damping: float = math.inf):
+        if not period > 0.0:
+            raise PassivityError(f"period must be > 0 (got {period}): give the haptic sample time in s")
+        if not max_damping > 0.0:
+            raise PassivityError(f"max_damping must be > 0 (got {max_damping}): e.g. the device mass / period")
+        self.period = float(period)
+        self.max_damping = float(max_damping)
+        self.controller = bool(controller)
+        self.energy = 0.0
+        self.min_energy = 0.0
+        self.last_alpha = 0.0
+        self._prev_position = None
+        self._prev_force = None
+        self._has_prev = False
+
+    def render(self, position, velocity, force) -> np.ndarray:
+        position = np.ascontiguousarray(position, np.float64).reshape(-1, 3)
+        velocity = np.ascontiguousarray(velocity, np.float64).reshape(-1, 3)
+        force = np.array(force, np.float64).reshape(-1, 3)
+        if self._prev_position is None or self._prev_position.shape != position.shape:
+            self._prev_position = np.zeros_like(position)
+            self._prev_force = np.zeros_like(position)
+            self._has_prev = False
+        self.energy, self.last_alpha = kernels.passivity_step(
+            position, velocity, force, self._prev_position, self._prev_force, self._has_prev, self.energy,
+            self.period, self.controller, self.max_damping)
+        self._has_prev = True
+        self.min_energy = min(self.min_energy, self.energy)
+        return force
+
+    def observe(self, position) -> float:
+        """Port energy including the work of the held force up to `position` (no sample recorded)."""
+        if not self._has_prev:
+            return self.energy
+        position = np.asarray(position, np.float64).reshape(-1, 3)
+        return self.energy - float(np.sum(self._prev_force * (position - self._prev_position)))

@@ -1,0 +1,477 @@
+"""The tissue model: mesh + material + boundary + integrator, advanced by ``step(t, dt)``.
+
+Plain Python state, no FMI imports: the FMU wrapper declares variables and delegates here.
+All validation happens in this layer (and :meth:`TissueParameters.validate`); the force field
+kernels never see bad input.  Units SI, node-major (n, 3) arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from numbers import Integral, Real
+
+import numpy as np
+
+from .forcefield import TensorMassForceField
+from .precompute import tensors_to_csr
+from .integrators import (
+    BackwardEuler,
+    FactorizedPreconditioner,
+    JacobiPreconditioner,
+    StabilityError,
+    StepStatistics,
+    SymplecticEuler,
+    TissueError,
+)
+from .mesh import TetMesh, aaa_mesh, load_mesh
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["TissueError", "StabilityError", "TissueParameters", "TissueModel"]
+
+LAWS = ("linear", "etmm", "hyperelastic")
+INTEGRATORS = ("explicit", "implicit")
+PRECONDITIONERS = ("factorized", "jacobi")
+# A step that moves a node farther than this many mesh diameters has diverged.
+DIVERGENCE_FACTOR = 10.0
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, Real) and not isinstance(value, bool)
+
+
+def _check_number(name: str, value, *, minimum=None, minimum_inclusive=True, maximum=None,
+                  maximum_inclusive=True, hint: str) -> None:
+    """Raise TissueError naming ``name`` unless ``value`` is a finite real number in range."""
+    if not _is_number(value) or not math.isfinite(float(value)):
+        raise TissueError(f"{name} must be a finite number (got {value!r}): {hint}")
+    if minimum is not None and (value < minimum if minimum_inclusive else value <= minimum):
+        op = ">=" if minimum_inclusive else ">"
+        raise TissueError(f"{name} must be {op} {minimum} (got {value!r}): {hint}")
+    if maximum is not None and (value > maximum if maximum_inclusive else value >= maximum):
+        op = "<=" if maximum_inclusive else "<"
+        raise TissueError(f"{name} must be {op} {maximum} (got {value!r}): {hint}")
+
+
+def _check_sphere(name: str, value) -> None:
+    if value is None:
+        return
+    hint = "give (cx, cy, cz, radius) in m, e.g. (0.0, 0.0, 0.065, 0.03), or None for the whole mesh"
+    try:
+        entries = [float(x) for x in value]
+    except (TypeError, ValueError):
+        raise TissueError(f"{name} must be a sequence of 4 numbers (got {value!r}): {hint}") from None
+    if len(entries) != 4 or not all(math.isfinite(x) for x in entries):
+        raise TissueError(f"{name} must be 4 finite numbers (got {value!r}): {hint}")
+    if entries[3] <= 0.0:
+        raise TissueError(f"{name} radius must be > 0 (got {entries[3]!r}): {hint}")
+
+
+@dataclass
+class TissueParameters:
+    """Material, integrator and boundary parameters of a tissue model.
+
+    Defaults: AAA wall with the Raghavan-Vorp law (alpha = 0.174 MPa, beta = 1.881 MPa, so
+    small-strain E = 6 alpha = 1.044 MPa), nearly incompressible, implicit integration at the
+    30 Hz frame rate, clamped at the aortic inlet and outlet.
+    """
+
+    young_modulus: float = 1.044e6  # Pa
+    poisson_ratio: float = 0.45
+    density: float = 1120.0  # kg/m^3
+    viscosity: float = 0.0  # Pa s, Kelvin-Voigt viscosity of the viscous tensor
+    law: str = "etmm"  # "linear", "etmm" (linear + non-linear correction) or "hyperelastic"
+    integrator: str = "implicit"  # "implicit" (backward Euler + CG) or "explicit" (symplectic Euler)
+    substeps: int | str = "auto"  # explicit only: substeps per step, or "auto"
+    cg_tolerance: float = 1e-6  # relative residual of the implicit solve
+    cg_max_iterations: int = 1000
+    preconditioner: str = "factorized"  # implicit CG: "factorized" (M + h^2 K_0 at rest) or "jacobi"
+    clamp: tuple[str, ...] = ("inlet", "outlet")  # node sets held at rest
+    active_region: tuple[float, float, float, float] | None = None  # (cx, cy, cz, radius) m
+    nonlinear_region: tuple[float, float, float, float] | None = None  # where ETMM may correct
+    nonlinear_strain_threshold: float = 0.05
+    rv_alpha: float = 0.174e6  # Pa, Raghavan-Vorp alpha
+    rv_beta: float = 1.881e6  # Pa, Raghavan-Vorp beta
+
+    def validate(self) -> None:
+        """Raise TissueError (a ValueError) naming the first bad parameter and the fix."""
+        _check_number("young_modulus", self.young_modulus, minimum=0.0, minimum_inclusive=False,
+                      hint="give Young's modulus in Pa, e.g. 1.044e6 for the AAA wall")
+        _check_number("poisson_ratio", self.poisson_ratio, minimum=-1.0, minimum_inclusive=False,
+                      maximum=0.5, maximum_inclusive=False,
+                      hint="Poisson's ratio must lie in (-1, 0.5), e.g. 0.45 for the AAA wall")
+        _check_number("density", self.density, minimum=0.0, minimum_inclusive=False,
+                      hint="give the density in kg/m^3, e.g. 1120")
+        _check_number("viscosity", self.viscosity, minimum=0.0,
+                      hint="give the viscosity in Pa s (0 for none)")
+        if self.law not in LAWS:
+            raise TissueError(f"law must be one of {LAWS} (got {self.law!r})")
+        if self.integrator not in INTEGRATORS:
+            raise TissueError(f"integrator must be one of {INTEGRATORS} (got {self.integrator!r})")
+        if self.substeps != "auto":
+            if not isinstance(self.substeps, Integral) or isinstance(self.substeps, bool):
+                raise TissueError(f"substeps must be an integer >= 1 or 'auto' (got {self.substeps!r})")
+            if self.substeps < 1:
+                raise TissueError(f"substeps must be >= 1 (got {self.substeps!r}): or use 'auto'")
+        _check_number("cg_tolerance", self.cg_tolerance, minimum=0.0, minimum_inclusive=False,
+                      maximum=1.0, maximum_inclusive=False,
+                      hint="give the relative CG residual, e.g. 1e-6")
+        if not isinstance(self.cg_max_iterations, Integral) or isinstance(self.cg_max_iterations, bool) \
+                or self.cg_max_iterations < 1:
+            raise TissueError(f"cg_max_iterations must be an integer >= 1 (got {self.cg_max_iterations!r}), e.g. 1000")
+        if self.preconditioner not in PRECONDITIONERS:
+            raise TissueError(f"preconditioner must be one of {PRECONDITIONERS} (got {self.preconditioner!r})")
+        if isinstance(self.clamp, str) or not all(isinstance(name, str) for name in self.clamp):
+            raise TissueError(
+                f"clamp must be a sequence of node set names (got {self.clamp!r}), e.g. ('inlet', 'outlet')"
+            )
+        _check_sphere("active_region", self.active_region)
+        _check_sphere("nonlinear_region", self.nonlinear_region)
+        _check_number("nonlinear_strain_threshold", self.nonlinear_strain_threshold, minimum=0.0,
+                      hint="give the Green strain above which ETMM corrects an element, e.g. 0.05")
+        _check_number("rv_alpha", self.rv_alpha, minimum=0.0, minimum_inclusive=False,
+                      hint="Raghavan-Vorp alpha in Pa, e.g. 0.174e6")
+        _check_number("rv_beta", self.rv_beta, minimum=0.0,
+                      hint="Raghavan-Vorp beta in Pa, e.g. 1.881e6")
+
+
+def _elements_in_sphere(mesh: TetMesh, sphere) -> np.ndarray:
+    """(m,) bool: elements whose centroid lies within the sphere (cx, cy, cz, radius)."""
+    centre = np.asarray(sphere[:3], dtype=np.float64)
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    return np.einsum("ij,ij->i", centroids - centre, centroids - centre) <= float(sphere[3]) ** 2
+
+
+def _element_selection(mesh: TetMesh, selection, index: int) -> np.ndarray:
+    """A material override's element selection -> (m,) bool mask."""
+    where = f"materials[{index}]"
+    m = mesh.n_tets
+    if isinstance(selection, str):
+        if selection not in mesh.element_sets:
+            raise TissueError(
+                f"{where}: unknown element set {selection!r}; the mesh has {sorted(mesh.element_sets)}"
+            )
+        mask = np.zeros(m, dtype=bool)
+        mask[mesh.element_sets[selection]] = True
+        return mask
+    array = np.asarray(selection)
+    if array.dtype == bool:
+        if array.shape != (m,):
+            raise TissueError(f"{where}: element mask must have shape ({m},) (got {array.shape})")
+        return array.copy()
+    if array.ndim == 1 and np.issubdtype(array.dtype, np.integer):
+        if array.size and (array.min() < 0 or array.max() >= m):
+            raise TissueError(f"{where}: element ids must lie in [0, {m}) (got {array.min()}..{array.max()})")
+        mask = np.zeros(m, dtype=bool)
+        mask[array] = True
+        return mask
+    raise TissueError(
+        f"{where}: the element selection must be a bool mask ({m},), integer element ids or an element set name"
+    )
+
+
+class TissueModel:
+    """Tensor-mass soft tissue advanced in time by ``step(t, dt)``.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+    params : TissueParameters (validated here)
+    materials : optional list of ``(elements, young_modulus, poisson_ratio)`` overrides applied in
+        order; ``elements`` is a bool mask (m,), integer element ids or an element set name
+        (e.g. a stiffer calcified patch: ``[(calcified_mask, 10e6, 0.45)]``).
+
+    Clamped nodes (``params.clamp`` node sets) and frozen nodes stay at rest.  With an active
+    region (elements whose centroid lies in the sphere ``params.active_region``) only active
+    elements are simulated; every node of an inactive element is frozen, i.e. the nodes no
+    active element touches and the interface, where the inactive tissue holds the active part
+    like a clamp.  Contact forces act on surface nodes and are held until changed (forces on
+    fixed nodes are taken by the support and move nothing).
+    """
+
+    def __init__(self, mesh: TetMesh, params: TissueParameters | None = None, materials=None):
+        if not isinstance(mesh, TetMesh):
+            raise TissueError(f"mesh must be a TetMesh (got {type(mesh).__name__}): build one with aaa_mesh() or load_mesh(path)")
+        params = TissueParameters() if params is None else params
+        params.validate()
+        self.mesh = mesh
+        self.params = params
+        n, m = mesh.n_nodes, mesh.n_tets
+
+        for name in params.clamp:
+            if name not in mesh.node_sets:
+                raise TissueError(
+                    f"clamp: unknown node set {name!r}; this mesh has node sets {sorted(mesh.node_sets)}"
+                )
+
+        self.young_modulus, self.poisson_ratio = self._element_materials(materials)
+
+        self.active_elements = (
+            np.ones(m, dtype=bool) if params.active_region is None else _elements_in_sphere(mesh, params.active_region)
+        )
+        if not self.active_elements.any():
+            raise TissueError(
+                f"active_region {params.active_region!r} contains no element centroid: enlarge the radius or move the centre"
+            )
+        nonlinear = None if params.nonlinear_region is None else _elements_in_sphere(mesh, params.nonlinear_region)
+
+        uniform = (np.all(self.young_modulus == self.young_modulus[0])
+                   and np.all(self.poisson_ratio == self.poisson_ratio[0]))
+        self.force_field = TensorMassForceField(
+            mesh.points, mesh.tets,
+            float(self.young_modulus[0]) if uniform else self.young_modulus,
+            float(self.poisson_ratio[0]) if uniform else self.poisson_ratio,
+            law=params.law,
+            viscosity=float(params.viscosity),
+            rv_alpha=float(params.rv_alpha),
+            rv_beta=float(params.rv_beta),
+            nonlinear_strain_threshold=float(params.nonlinear_strain_threshold),
+            nonlinear_elements=nonlinear,
+            active_elements=None if params.active_region is None else self.active_elements,
+        )
+        self.masses = np.asarray(self.force_field.lumped_masses(float(params.density)), dtype=np.float64)
+
+        clamped = np.zeros(n, dtype=bool)
+        for name in params.clamp:
+            clamped[mesh.node_sets[name]] = True
+        # Frozen: nodes no active element touches (they have no mass or stiffness), and the
+        # nodes on the interface with the inactive (rigid, at rest) tissue.  Freeing the
+        # interface would leave the active region floating unless a clamp set lies inside it
+        # (measured: a cantilever tip region drifted 0.7 m in 10 steps).
+        frozen = np.ones(n, dtype=bool)
+        frozen[mesh.tets[self.active_elements].ravel()] = False
+        frozen[mesh.tets[~self.active_elements].ravel()] = True
+        self.clamped = clamped
+        self.frozen = frozen
+        self.fixed = clamped | frozen
+        if self.fixed.all():
+            raise TissueError("every node is clamped or outside the active region: nothing can move; "
+                              "enlarge active_region or clamp fewer node sets")
+
+        self._mesh_size = float(np.linalg.norm(mesh.points.max(axis=0) - mesh.points.min(axis=0)))
+        self.surface_nodes, self.surface_triangles = mesh.surface()
+        self.n_surface = int(self.surface_nodes.shape[0])
+
+        self.time = 0.0
+        self.displacement = np.zeros((n, 3))
+        self.velocity = np.zeros((n, 3))
+        self._external_force = np.zeros((n, 3))
+        self._statistics = StepStatistics()
+        self._critical_time_step: float | None = None
+        self.integrator = self._make_integrator()
+        logger.info(
+            "tissue model: %d nodes (%d fixed), %d/%d active tets, %d surface nodes, law=%s, integrator=%s",
+            n, int(self.fixed.sum()), int(self.active_elements.sum()), m, self.n_surface, params.law,
+            params.integrator if params.integrator == "explicit" else f"implicit/{params.preconditioner}",
+        )
+
+    # ----------------------------------------------------------------------------------
+    # Construction helpers
+    # ----------------------------------------------------------------------------------
+
+    @classmethod
+    def from_parameters(cls, params: TissueParameters | None = None, *, mesh_file=None, materials=None,
+                        **aaa_mesh_kwargs) -> "TissueModel":
+        """Build the model on the built-in AAA mesh (``aaa_mesh(**aaa_mesh_kwargs)``) or a mesh file."""
+        if mesh_file is not None:
+            if aaa_mesh_kwargs:
+                raise TissueError(f"give either mesh_file or AAA mesh sizes, not both (got {sorted(aaa_mesh_kwargs)})")
+            mesh = load_mesh(mesh_file)
+        else:
+            mesh = aaa_mesh(**aaa_mesh_kwargs)
+        return cls(mesh, params, materials)
+
+    @classmethod
+    def default_aaa(cls) -> "TissueModel":
+        """The default AAA wall: ``aaa_mesh()`` defaults and ``TissueParameters()`` defaults."""
+        return cls.from_parameters()
+
+    def _element_materials(self, materials) -> tuple[np.ndarray, np.ndarray]:
+        m = self.mesh.n_tets
+        young = np.full(m, float(self.params.young_modulus))
+        poisson = np.full(m, float(self.params.poisson_ratio))
+        if materials is None:
+            return young, poisson
+        if isinstance(materials, (str, bytes)) or not hasattr(materials, "__iter__"):
+            raise TissueError("materials must be a list of (elements, young_modulus, poisson_ratio) tuples")
+        for index, entry in enumerate(materials):
+            try:
+                selection, e_value, nu_value = entry
+            except (TypeError, ValueError):
+                raise TissueError(
+                    f"materials[{index}] must be a tuple (elements, young_modulus, poisson_ratio) (got {entry!r})"
+                ) from None
+            mask = _element_selection(self.mesh, selection, index)
+            _check_number(f"materials[{index}] young_modulus", e_value, minimum=0.0, minimum_inclusive=False,
+                          hint="give Young's modulus in Pa, e.g. 10e6 for a calcified patch")
+            _check_number(f"materials[{index}] poisson_ratio", nu_value, minimum=-1.0, minimum_inclusive=False,
+                          maximum=0.5, maximum_inclusive=False, hint="Poisson's ratio must lie in (-1, 0.5)")
+            young[mask] = float(e_value)
+            poisson[mask] = float(nu_value)
+        return young, poisson
+
+    def _make_integrator(self):
+        p = self.params
+        if p.integrator == "explicit":
+            return SymplecticEuler(
+                self.force_field, self.masses, self.fixed, p.substeps,
+                critical_time_step=self._critical_step(),
+            )
+        if p.preconditioner == "factorized":
+            ff = self.force_field
+            damping = ff.damping_tensors() if p.viscosity > 0.0 else None
+            preconditioner = FactorizedPreconditioner(
+                ff.stiffness_matrix(), self.masses, self.fixed,
+                damping=None if damping is None else tensors_to_csr(damping),
+            )
+        else:
+            preconditioner = JacobiPreconditioner(self.force_field, self.masses, self.fixed)
+        return BackwardEuler(
+            self.force_field, self.masses, self.fixed, p.cg_tolerance, p.cg_max_iterations,
+            viscous=p.viscosity > 0.0, preconditioner=preconditioner,
+        )
+
+    def _critical_step(self) -> float:
+        if self._critical_time_step is None:
+            # Nodes outside the active region have no mass; they carry no stiffness either.
+            masses = np.where(self.masses > 0.0, self.masses, 1.0)
+            self._critical_time_step = float(self.force_field.critical_time_step(masses))
+        return self._critical_time_step
+
+    # ----------------------------------------------------------------------------------
+    # Inputs and stepping
+    # ----------------------------------------------------------------------------------
+
+    def set_contact_force(self, forces) -> None:
+        """Nodal forces (N) on the surface nodes: (n_surface, 3) or flat (n_surface*3,), held until changed."""
+        try:
+            array = np.asarray(forces, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TissueError(f"contact force must be numeric, shape ({self.n_surface}, 3) or ({3 * self.n_surface},)") from None
+        if array.size != 3 * self.n_surface or array.ndim not in (1, 2) or (array.ndim == 2 and array.shape[1] != 3):
+            raise TissueError(
+                f"contact force has shape {array.shape}: expected ({self.n_surface}, 3) or flat "
+                f"({3 * self.n_surface},) for the {self.n_surface} surface nodes"
+            )
+        array = array.reshape(self.n_surface, 3)
+        if not np.isfinite(array).all():
+            bad = np.flatnonzero(~np.isfinite(array).all(axis=1))
+            raise TissueError(
+                f"contact force contains NaN/Inf at surface node(s) {bad[:10].tolist()}: fix the contact model output"
+            )
+        self._external_force[self.surface_nodes] = array
+
+    def step(self, t: float, dt: float) -> None:
+        """Advance from time ``t`` to ``t + dt``.  Explicit refuses an unstable dt (StabilityError)."""
+        if not _is_number(dt) or not math.isfinite(dt) or dt <= 0.0:
+            raise TissueError(f"dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
+        if not _is_number(t) or not math.isfinite(t):
+            raise TissueError(f"t must be a finite number (got {t!r})")
+        stats = self.integrator.step(self.displacement, self.velocity, self._external_force, float(dt))
+        # A non-linear law can stiffen past the rest-state stability bound; never hand NaN on.
+        if not (np.isfinite(self.displacement).all() and np.isfinite(self.velocity).all()):
+            raise TissueError(
+                f"tissue state became NaN/Inf in the step from t = {t:.6g} s (dt = {dt:.4g} s, "
+                f"{self.params.integrator} integrator): reduce dt, use more substeps or the implicit integrator"
+            )
+        # A linearised step can also diverge without NaN (a huge load on the hyperelastic law):
+        # no tissue moves farther than several times its own size.
+        reach = float(np.abs(self.displacement).max())
+        if reach > DIVERGENCE_FACTOR * self._mesh_size:
+            raise TissueError(
+                f"tissue step diverged at t = {t:.6g} s: a node moved {reach:.3g} m, more than "
+                f"{DIVERGENCE_FACTOR:g} x the mesh size {self._mesh_size:.3g} m; reduce the load or dt, "
+                f"or use law='etmm'"
+            )
+        self._statistics = stats
+        self.time = float(t) + float(dt)
+
+    def reset(self) -> None:
+        """Back to rest: zero displacement, velocity and contact force."""
+        self.displacement.fill(0.0)
+        self.velocity.fill(0.0)
+        self._external_force.fill(0.0)
+        self._statistics = StepStatistics()
+        self.time = 0.0
+        if isinstance(self.integrator, BackwardEuler):
+            self.integrator.dv.fill(0.0)
+
+    def get_state(self) -> dict:
+        """A copy of everything a step depends on (for FMU get/set state and rollback)."""
+        state = {
+            "time": self.time,
+            "displacement": self.displacement.copy(),
+            "velocity": self.velocity.copy(),
+            "external_force": self._external_force.copy(),
+        }
+        if isinstance(self.integrator, BackwardEuler):
+            state["warm_start"] = self.integrator.dv.copy()
+        return state
+
+    def set_state(self, state: dict) -> None:
+        """Restore a state returned by :meth:`get_state`."""
+        self.time = float(state["time"])
+        np.copyto(self.displacement, state["displacement"])
+        np.copyto(self.velocity, state["velocity"])
+        np.copyto(self._external_force, state["external_force"])
+        if isinstance(self.integrator, BackwardEuler) and "warm_start" in state:
+            np.copyto(self.integrator.dv, state["warm_start"])
+
+    # ----------------------------------------------------------------------------------
+    # Outputs
+    # ----------------------------------------------------------------------------------
+
+    def positions(self) -> np.ndarray:
+        """(n, 3) current node positions."""
+        return self.mesh.points + self.displacement
+
+    def surface_positions(self) -> np.ndarray:
+        """(n_surface, 3) current positions of the surface nodes."""
+        return self.mesh.points[self.surface_nodes] + self.displacement[self.surface_nodes]
+
+    def surface_velocities(self) -> np.ndarray:
+        """(n_surface, 3) current velocities of the surface nodes."""
+        return self.velocity[self.surface_nodes]
+
+    @property
+    def strain_energy(self) -> float:
+        return float(self.force_field.strain_energy(self.displacement))
+
+    @property
+    def kinetic_energy(self) -> float:
+        return 0.5 * float(np.dot(self.masses, np.einsum("ij,ij->i", self.velocity, self.velocity)))
+
+    @property
+    def max_strain(self) -> float:
+        return float(self.force_field.max_strain(self.displacement))
+
+    @property
+    def nonlinear_fraction(self) -> float:
+        return float(self.force_field.nonlinear_fraction)
+
+    @property
+    def solver_iterations(self) -> int:
+        """CG iterations of the last implicit step; substeps of the last explicit step."""
+        if isinstance(self.integrator, SymplecticEuler):
+            return self._statistics.substeps
+        return self._statistics.iterations
+
+    @property
+    def solver_residual(self) -> float:
+        return self._statistics.relative_residual
+
+    @property
+    def solver_converged(self) -> bool:
+        return self._statistics.converged
+
+    @property
+    def substeps(self) -> int:
+        """Substeps used by the last step (1 for the implicit integrator, 0 before any step)."""
+        return self._statistics.substeps
+
+    @property
+    def critical_time_step(self) -> float:
+        """Explicit stability limit of this mesh and material (s), damping and stiffening included."""
+        return self._critical_step()

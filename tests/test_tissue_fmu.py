@@ -1,0 +1,160 @@
+"""The built Tissue.fmu: FMI conformance, array ports, physics through the FMU, bad input.
+
+These load the real FMU (built from this checkout by the session fixture) through FMPy.
+"""
+from __future__ import annotations
+
+import math
+import zipfile
+
+import numpy as np
+import pytest
+from fmpy import read_model_description, simulate_fmu
+from fmpy.validation import validate_fmu
+
+from fmu_harness import fmu_instance
+from tissue_fmu.mesh import aaa_mesh
+from tissue_fmu.model import TissueModel, TissueParameters
+
+STEP = 1.0 / 30.0
+
+
+def test_validates_without_problems(tissue_fmu):
+    assert validate_fmu(str(tissue_fmu)) == []
+
+
+def test_model_description_declares_contract(tissue_fmu):
+    md = read_model_description(str(tissue_fmu))
+    assert md.fmiVersion == "3.0"
+    assert math.isclose(float(md.defaultExperiment.stepSize), STEP)
+    assert md.coSimulation.canHandleVariableCommunicationStepSize is False
+    variables = {v.name: v for v in md.modelVariables}
+    assert variables["time"].causality == "independent"
+    surface_nodes, triangles = aaa_mesh().surface()
+    n = len(surface_nodes)
+    for name in ("surface_positions", "surface_velocities", "contact_force"):
+        assert variables[name].shape == (n, 3), name
+    assert variables["contact_force"].causality == "input"
+    assert variables["contact_force"].unit == "N"
+    assert variables["surface_positions"].unit == "m"
+    assert variables["surface_triangles"].shape == (len(triangles), 3)
+    outputs = {variables_by_vr.name for variables_by_vr in (o.variable for o in md.outputs)}
+    assert {"surface_positions", "surface_velocities", "strain_energy", "kinetic_energy", "max_strain",
+            "solver_iterations", "solver_residual"} <= outputs
+
+
+def test_simulates_standalone_with_fmpy(tissue_fmu):
+    result = simulate_fmu(str(tissue_fmu), stop_time=4 * STEP, output=["strain_energy", "solver_iterations"])
+    np.testing.assert_allclose(result["time"], np.arange(5) * STEP, rtol=0, atol=1e-12)
+    # no load: the wall stays at rest
+    assert np.all(result["strain_energy"] == 0.0)
+
+
+def test_array_input_round_trip_and_outputs_match_model(tissue_fmu):
+    """An array input set through fmi3SetFloat64 reads back bit-identical (pythonfmu3's default
+    array setter breaks on NumPy 2.4), and the FMU's response equals the model's run directly."""
+    mesh = aaa_mesh()
+    surface_nodes, triangles = mesh.surface()
+    n = len(surface_nodes)
+    rng = np.random.default_rng(7)
+    # inward push on sac nodes of the outer wall, random magnitudes (N)
+    points = mesh.points[surface_nodes]
+    radial = points[:, :2] / np.linalg.norm(points[:, :2], axis=1, keepdims=True)
+    sac = np.abs(points[:, 2] - 0.065) < 0.01
+    force = np.zeros((n, 3))
+    force[sac, :2] = -radial[sac] * rng.uniform(0.0, 0.02, size=(sac.sum(), 1))
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.slave.enterInitializationMode()
+        fmu.slave.exitInitializationMode()
+        fmu.set("contact_force", force.ravel())
+        np.testing.assert_array_equal(fmu.get("contact_force"), force.ravel())
+        np.testing.assert_array_equal(fmu.get("surface_triangles").reshape(-1, 3), triangles)
+        np.testing.assert_array_equal(fmu.get("surface_positions").reshape(-1, 3), points)
+        for k in range(3):
+            fmu.slave.doStep(k * STEP, STEP)
+        positions = fmu.get("surface_positions").reshape(-1, 3)
+        energy = float(fmu.get("strain_energy"))
+        assert fmu.errors() == []
+    model = TissueModel(mesh, TissueParameters())
+    model.set_contact_force(force)
+    for k in range(3):
+        model.step(k * STEP, STEP)
+    np.testing.assert_allclose(positions, model.surface_positions(), rtol=0, atol=1e-12)
+    assert energy == pytest.approx(model.strain_energy, rel=1e-9)
+    displacement = positions - points
+    assert np.sum(displacement[sac] * force[sac]) > 0  # pushed nodes move along the push
+    assert energy > 0
+
+
+@pytest.mark.parametrize(
+    "name, value, words",
+    [
+        ("young_modulus", -1.0, "young_modulus"),
+        ("young_modulus", 0.0, "young_modulus"),
+        ("poisson_ratio", 0.5, "poisson_ratio"),
+        ("poisson_ratio", -1.0, "poisson_ratio"),
+        ("density", 0.0, "density"),
+        ("law", "plastic", "law"),
+        ("mesh_file", "/nonexistent/mesh.vtu", "mesh"),
+        ("n_surface_nodes", 17, "n_surface_nodes"),
+    ],
+)
+def test_bad_parameter_gives_error_status_and_reason(tissue_fmu, name, value, words):
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.set(name, value)
+        fmu.slave.enterInitializationMode()
+        fmu.slave.exitInitializationMode()
+        with pytest.raises(Exception) as info:
+            fmu.slave.doStep(0.0, STEP)
+        assert "status 3" in str(info.value) or "Error" in str(info.value)
+        assert any(words in message for message in fmu.errors()), fmu.messages
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_contact_force_is_refused(tissue_fmu, bad):
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.slave.enterInitializationMode()
+        fmu.slave.exitInitializationMode()
+        force = np.zeros(fmu.size("contact_force"))
+        force[11] = bad
+        fmu.set("contact_force", force)
+        with pytest.raises(Exception):
+            fmu.slave.doStep(0.0, STEP)
+        assert any("contact_force" in m and "NaN/Inf" in m for m in fmu.errors()), fmu.messages
+        # the previous (finite) outputs are still readable: nothing was lost
+        assert np.all(np.isfinite(fmu.get("surface_positions")))
+
+
+def test_communication_step_is_enforced(tissue_fmu):
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.slave.enterInitializationMode()
+        fmu.slave.exitInitializationMode()
+        with pytest.raises(Exception):
+            fmu.slave.doStep(0.0, 0.001)
+        assert any("communication step is fixed" in m for m in fmu.errors())
+
+
+def test_degenerate_mesh_file_gives_error_status(tissue_fmu, tmp_path):
+    import meshio
+
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=float)  # flat: zero volume
+    path = tmp_path / "flat.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", np.array([[0, 1, 2, 3]]))]))
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.set("mesh_file", str(path))
+        fmu.slave.enterInitializationMode()
+        fmu.slave.exitInitializationMode()
+        with pytest.raises(Exception):
+            fmu.slave.doStep(0.0, STEP)
+        assert any("degenerate" in m for m in fmu.errors()), fmu.messages
+
+
+def test_shipped_binary_is_the_patched_export_library(tissue_fmu):
+    """The FMU must not carry pythonfmu3's stock binary, whose exit handler frees memory twice."""
+    import pythonfmu3
+    from pathlib import Path
+
+    stock = Path(pythonfmu3.__file__).parent / "resources" / "binaries" / "x86_64-linux" / "libpythonfmu-export.so"
+    with zipfile.ZipFile(tissue_fmu) as archive:
+        shipped = archive.read("binaries/x86_64-linux/Tissue.so")
+    assert shipped != stock.read_bytes()
