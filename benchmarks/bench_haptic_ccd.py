@@ -69,7 +69,8 @@ def bench_ccd(copies, repeats):
     far[:, [0, 4], 0] += 2.0 * extent[:, None] + 1.0
     batch = np.ascontiguousarray(np.tile(far, (copies, 1, 1)))
     elapsed = best_time(lambda: ccd.vertex_face(batch), repeats)
-    print(f"  separated vertex-face queries (rejected at the root box): {batch.shape[0] / elapsed / 1e6:.3f} M queries/s")
+    print(f"  separated vertex-face queries (rejected at the root box): "
+          f"{batch.shape[0] / elapsed / 1e6:.3f} M queries/s")
 
 
 def bench_aabb(subdivisions, repeats):

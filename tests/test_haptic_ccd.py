@@ -86,6 +86,58 @@ def reference_first_contact(query, edge_edge, ambiguity=1e-4):
     return False, np.inf, ambiguous
 
 
+def inside_margins(p, edge_edge):
+    """Parameters of the closest points of the two primitives' planes/lines at a coplanar instant,
+    as margins that are all >= 0 iff the contact point lies inside both primitives."""
+    if edge_edge:
+        matrix = np.stack([p[1] - p[0], -(p[3] - p[2])], axis=1)
+        (u, w), *_ = np.linalg.lstsq(matrix, p[2] - p[0], rcond=None)
+        return np.array([u, 1.0 - u, w, 1.0 - w])
+    matrix = np.stack([p[2] - p[1], p[3] - p[1]], axis=1)
+    (u, w), *_ = np.linalg.lstsq(matrix, p[0] - p[1], rcond=None)
+    return np.array([u, w, 1.0 - u - w])
+
+
+def coplanarity(p, edge_edge):
+    """Signed volume whose zeros are the coplanar instants; p (..., 4, 3)."""
+    p = np.asarray(p)
+    if edge_edge:
+        return np.einsum("...i,...i->...", np.cross(p[..., 1, :] - p[..., 0, :], p[..., 3, :] - p[..., 2, :]),
+                         p[..., 2, :] - p[..., 0, :])
+    return np.einsum("...i,...i->...", np.cross(p[..., 2, :] - p[..., 1, :], p[..., 3, :] - p[..., 1, :]),
+                     p[..., 0, :] - p[..., 1, :])
+
+
+def reference_first_contact_sampled(position_at, edge_edge, n_samples=4001, ambiguity=1e-3):
+    """First contact of any trajectory by sign changes of the coplanarity function on a fine grid,
+    refined by bisection, then the inside test. (hit, toi, ambiguous) as reference_first_contact;
+    ambiguous also when the function comes near zero without a sign change (possible double root)."""
+    ts = np.linspace(0.0, 1.0, n_samples)
+    g = coplanarity(position_at(ts[:, None, None]), edge_edge)
+    scale = np.max(np.abs(g))
+    ambiguous = scale == 0.0 or abs(g[0]) < ambiguity * scale or abs(g[-1]) < ambiguity * scale
+    crossings = np.flatnonzero(np.sign(g[:-1]) * np.sign(g[1:]) < 0)
+    near_zero = np.flatnonzero(np.abs(g) < ambiguity * scale)
+    if np.any(np.min(np.abs(near_zero[:, None] - crossings[None, :]), axis=1, initial=n_samples) > 2):
+        ambiguous = True
+    for k in crossings:
+        a, b = ts[k], ts[k + 1]
+        ga = g[k]
+        for _ in range(60):
+            mid = 0.5 * (a + b)
+            gm = coplanarity(position_at(mid), edge_edge)
+            if np.sign(gm) == np.sign(ga):
+                a, ga = mid, gm
+            else:
+                b = mid
+        margins = inside_margins(position_at(a), edge_edge)
+        if np.any(np.abs(margins) < ambiguity):
+            ambiguous = True
+        if np.all(margins >= 0.0):
+            return True, a, ambiguous
+    return False, np.inf, ambiguous
+
+
 def hermite(p0, p1, v0, v1, dt, s):
     h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
     return h00 * p0 + h10 * dt * v0 + h01 * p1 + h11 * dt * v1
@@ -331,6 +383,35 @@ def test_spline_accepts_per_query_dt():
     hit, toi = ccd.vertex_face_spline(np.stack([p, p]), np.stack([p, p]), v0, v1, np.array([0.01, 0.01]))
     # a dt = 8 dips through the face, a dt = 0.8 only to z = 0.8
     assert hit.tolist() == [True, False]
+
+
+@pytest.mark.parametrize("edge_edge", [False, True])
+def test_random_spline_queries_against_sampled_reference(edge_edge):
+    """Random cubic Hermite trajectories (velocities far from the chord) against a fine-grid
+    sign-change reference of the degree-9 coplanarity function."""
+    rng = np.random.default_rng(21 + edge_edge)
+    n, dt = 600, 0.01
+    p0 = rng.uniform(-1.0, 1.0, (n, 4, 3))
+    p1 = p0 + rng.normal(0.0, 0.6, (n, 4, 3))
+    # first point's chord aimed through the middle of the other primitive, so that many cross it
+    p1[:, 0] = 2.0 * p1[:, 1:].mean(axis=1) - p0[:, 0] + rng.normal(0.0, 0.3, (n, 3))
+    v0 = rng.normal(0.0, 1.0, (n, 4, 3)) / dt
+    v1 = rng.normal(0.0, 1.0, (n, 4, 3)) / dt
+    detect = ccd.edge_edge_spline if edge_edge else ccd.vertex_face_spline
+    hit, toi = detect(p0, p1, v0, v1, dt)
+    n_checked = n_hits = 0
+    for q in range(n):
+        def position_at(s, q=q):
+            return hermite(p0[q], p1[q], v0[q], v1[q], dt, s)
+        ref_hit, ref_toi, ambiguous = reference_first_contact_sampled(position_at, edge_edge)
+        if ambiguous:
+            continue
+        n_checked += 1
+        assert hit[q] == ref_hit, f"query {q}: ccd {hit[q]} reference {ref_hit}"
+        if ref_hit:
+            n_hits += 1
+            assert ref_toi - 1e-4 <= toi[q] <= ref_toi + 1e-9, f"query {q}: toi {toi[q]} reference {ref_toi}"
+    assert n_checked > 0.6 * n and n_hits > 20
 
 
 # ---------------------------------------------------------------------------- validation

@@ -1,20 +1,24 @@
 """Continuous collision detection (CCD) of vertex-face and edge-edge pairs, batched.
 
-Conservative by construction (no missed contact; see `ccd_kernels` for the method): a query is a
-hit when the two primitives come within the contact margin at some time of the step; the returned
-time of impact (toi, fraction of the step in [0, 1]) is a lower bound of the first contact time,
-at most one resolution box early.
+Conservative by construction (no missed contact; see `ccd_kernels` for the method and its
+floating-point error bound): a query is a hit when the two primitives come within the contact
+margin at some time of the step. The returned time of impact (toi, fraction of the step in
+[0, 1]) is a lower bound of the first contact time, early by at most about tolerance * L / speed.
 
-Tolerances (all relative to the query's extent L = largest coordinate range over its points):
-- `tolerance` (default 1e-6): a box of the (t, u, w) domain is accepted as contact once F varies
-  by at most tolerance * L over it, so a reported hit means the primitives came within about
-  (tolerance + min_separation) * L (L-infinity distance); this is the source of false positives.
-- `min_separation` (default 1e-10): contact margin; primitives closer than min_separation * L
-  (L-infinity) count as touching. A round-off bound (~6e-14 * max|coordinate|) is always added.
+Tolerances (L = the query's extent, the largest coordinate range over its points):
+- `tolerance` (default 1e-6, relative to L): resolution. A part of the (t, u, w) domain that
+  cannot be excluded is accepted as contact once F = (vertex - face point) or (edge point - edge
+  point) varies by at most tolerance * L over it, or once the primitives are within
+  tolerance * L (+ margin) of each other at its start time. So near misses closer than about
+  tolerance * L may be reported as hits: the source of false positives.
+- `min_separation` (default 1e-10, relative to L): contact margin, primitives closer than
+  min_separation * L (L-infinity) count as touching. A round-off bound (6e-14 * max|coordinate|)
+  is always added, which is what makes the exclusion test rigorous in floating point.
 - `min_distance` (default 0, absolute, m): extra margin, e.g. a tool radius (L-infinity test, so
   conservative for the Euclidean distance).
 - `max_boxes` (default 10000): work budget per query; if it runs out the query is reported as a
-  hit at the earliest unresolved time (conservative) and a warning is logged.
+  hit at the earliest unresolved time (conservative) and a warning is logged. The hardest of
+  the 7,279 sample queries needs 1661 boxes (about 50 ns each).
 
 Linear motion: points move on straight lines from t=0 to t=1. Spline motion: cubic Hermite
 trajectories from positions p0, p1 and velocities v0, v1 over [0, dt], i.e. Bezier control

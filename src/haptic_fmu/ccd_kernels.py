@@ -23,8 +23,14 @@ Besides the coordinate axes, two more separating directions are tried per box (e
 normal or common edge normal, and F at the box centre), which removes thin sliding/grazing images
 far faster than axis-aligned boxes alone; they are conservative for any direction.
 
-Search order: depth-first, earlier half in t first. The first accepted box (its image is smaller
-than the tolerance) bounds the first contact from above by its t_lo = t_best; the remaining boxes
+A box that is not discarded is accepted as contact when its image is smaller than the tolerance,
+or when the primitives are within the tolerance (plus margin) at its start time t_lo (a direct
+floating-point distance; acceptance can only add hits, never lose one). Splits go to t when the
+box straddles the moment the primitives cross each other's plane (a t-split is then what excludes
+or accepts it), otherwise to the direction of largest image change (t favoured).
+
+Search order: depth-first, earlier half in t first. The first accepted box bounds the first
+contact from above by its t_lo = t_best; the remaining boxes
 are then clipped to t < t_best, and every further accepted box lowers t_best. The returned time
 of impact t_best is thus a lower bound of the first contact, at most one box (about
 tolerance / |dF/dt|) early. If the box budget or stack runs out, the query is reported as a hit
@@ -44,7 +50,8 @@ _ERR_FACTOR = 256.0
 # as far as needed to exclude or accept).
 _T_BIAS = 64.0
 _WELL_CONDITIONED_SINE = 0.1
-# A thin time slab is accepted when the primitives are this fraction of tol apart at its start.
+# A box is also accepted when the primitives are within this fraction of tol (plus the contact
+# margin) at its t_lo; 1.0 gives the same meaning of "contact" as the box-image criterion.
 _ACCEPT_DISTANCE_FRACTION = 1.0
 _STACK_COLS = 6  # t_lo, t_hi, u_lo, u_hi, w_lo, w_hi
 
@@ -493,7 +500,7 @@ def ccd_query(points, deg, edge_edge, rel_tolerance, rel_separation, min_distanc
         width = 0.0
         t_helps = False
         if keep:
-            # deg passed as a literal in the common linear case so LLVM unrolls the small loops
+            # linear motion (the common case) has a scalar, unrolled version of the box test
             if deg == 1:
                 keep, width, t_helps = _box_test_linear(ctrl, t_lo, t_hi, u_lo, u_hi, w_lo, w_hi, margin, dot_err,
                                                         tol)
@@ -508,11 +515,11 @@ def ccd_query(points, deg, edge_edge, rel_tolerance, rel_separation, min_distanc
                 t_best = t_lo  # accepted: contact (within tolerance) at t_lo
                 keep = False
             elif t_lo != t_checked:
-                # accept if the primitives are within a fraction of tol at t_lo (a direct distance,
-                # so u and w need not be resolved); computed once per distinct t_lo. Accepting
-                # never loses a contact: it only reports one.
+                # accept if the primitives are within tol (+ margin) at t_lo: a direct distance, so
+                # u and w need not be resolved; computed once per distinct t_lo. Accepting never
+                # loses a contact, it only reports one (at worst a false positive within tol).
                 t_checked = t_lo
-                if _distance_at(ctrl, deg, edge_edge, t_lo, work) <= _ACCEPT_DISTANCE_FRACTION * tol:
+                if _distance_at(ctrl, deg, edge_edge, t_lo, work) <= _ACCEPT_DISTANCE_FRACTION * tol + margin:
                     t_best = t_lo
                     keep = False
         if not keep:
