@@ -21,7 +21,17 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from pythonfmu3 import Dimension, Fmi3Causality, Fmi3Status, Fmi3StepResult, Fmi3Variability, Float64, Int32, UInt64
+from pythonfmu3 import (
+    DefaultExperiment,
+    Dimension,
+    Fmi3Causality,
+    Fmi3Status,
+    Fmi3StepResult,
+    Fmi3Variability,
+    Float64,
+    Int32,
+    UInt64,
+)
 from pythonfmu3.unit import Unit
 
 #: Units used across the project's ports (SI; DESIGN.md section 4).
@@ -122,6 +132,31 @@ class GuardedSlaveMixin:
     communication_step: float
     #: Python loggers whose warnings are forwarded to the FMU log.
     forwarded_loggers: tuple[str, ...] = ()
+
+    def _declare_basics(self, description: str, communication_step: float) -> None:
+        """Model attributes, units, the independent ``time`` and the ``communication_step`` parameter."""
+        self.description = description
+        self.author = "aaa-cosim"
+        self.version = "0.1.0"
+        self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=communication_step)
+        self._setup_guard()
+        self._register_units()
+        self.time = 0.0
+        self.register_variable(Float64("time", causality=Fmi3Causality.independent,
+                                       variability=Fmi3Variability.continuous, unit="s",
+                                       description="simulation time"))
+        self.communication_step = communication_step
+        self.register_variable(Float64("communication_step", causality=Fmi3Causality.parameter,
+                                       variability=Fmi3Variability.fixed, unit="s",
+                                       description="fixed communication step size (enforced)"))
+
+    def _register_scalars(self, entries, causality: Fmi3Causality, variability: Fmi3Variability) -> None:
+        """Declare Float64 scalars ``(name, unit or None, description)`` backed by attributes set before."""
+        for name, unit, text in entries:
+            kwargs = dict(causality=causality, variability=variability, description=text)
+            if unit:
+                kwargs["unit"] = unit
+            self.register_variable(Float64(name, **kwargs))
 
     def _setup_guard(self) -> None:
         self._failure: str | None = None

@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 from pythonfmu3 import (
     Boolean,
-    DefaultExperiment,
     Fmi3Causality,
     Fmi3Slave,
     Fmi3Variability,
@@ -47,28 +46,14 @@ class CatheterSlave(GuardedSlaveMixin, Fmi3Slave):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        self.description = "Active catheter: kinematics on the vessel centerline, actuated tip, effort controller"
-        self.author = "aaa-cosim"
-        self.version = "0.1.0"
-        self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=0.001)
-        self._setup_guard()
-        self._register_units()
+        self._declare_basics("Active catheter: kinematics on the vessel centerline, actuated tip, effort controller",
+                             0.001)
         self.model: CatheterModel | None = None
-
-        self.time = 0.0
-        self.register_variable(Float64("time", causality=C.independent, variability=V.continuous, unit="s",
-                                       description="simulation time"))
         defaults = CatheterParameters()
-        self.communication_step = 0.001
         fixed = dict(causality=C.parameter, variability=V.fixed)
-        self.register_variable(Float64("communication_step", **fixed, unit="s",
-                                       description="fixed communication step size (enforced)"))
-        for name, unit, text in FLOAT_PARAMETERS:
+        for name, _, _ in FLOAT_PARAMETERS:
             setattr(self, name, float(getattr(defaults, name)))
-            kw = dict(fixed, description=text)
-            if unit:
-                kw["unit"] = unit
-            self.register_variable(Float64(name, **kw))
+        self._register_scalars(FLOAT_PARAMETERS, C.parameter, V.fixed)
         self.controller_mode = defaults.controller_mode
         self.anti_windup = bool(defaults.anti_windup)
         self.register_variable(String("controller_mode", **fixed, description="off, regulate or external"))
@@ -103,17 +88,13 @@ class CatheterSlave(GuardedSlaveMixin, Fmi3Slave):
         self.tip_force_magnitude = 0.0
         self.total_bend = 0.0
         self.effort_warning = False
-        for name, unit, text in [
+        self._register_scalars([
             ("bend_angle", "rad", "actuator bend angle"),
             ("actuator_command", "rad", "command sent to the actuator"),
             ("advised_insertion_scale", None, "1 when all is well, lower as the effort grows"),
             ("tip_force_magnitude", "N", "magnitude of the tip force seen by the controller"),
             ("total_bend", "rad", "active plus passive bend"),
-        ]:
-            kw = dict(causality=C.output, variability=V.continuous, description=text)
-            if unit:
-                kw["unit"] = unit
-            self.register_variable(Float64(name, **kw))
+        ], C.output, V.continuous)
         self.register_variable(Boolean("effort_warning", causality=C.output, variability=V.discrete,
                                        description="the order to the operator to reduce the effort"))
 

@@ -16,11 +16,9 @@ from pathlib import Path
 import numpy as np
 from pythonfmu3 import (
     Boolean,
-    DefaultExperiment,
     Fmi3Causality,
     Fmi3Slave,
     Fmi3Variability,
-    Float64,
     Int32,
     String,
 )
@@ -68,28 +66,16 @@ class ContactSlave(GuardedSlaveMixin, Fmi3Slave):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        self.description = ("Continuous collision detection (AABB tree, spline trajectories), penalty "
-                            "response and penalty haptic rendering with a local model")
-        self.author = "aaa-cosim"
-        self.version = "0.1.0"
-        self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=0.001)
-        self._setup_guard()
-        self._register_units()
+        self._declare_basics("Continuous collision detection (AABB tree, spline trajectories), penalty "
+                             "response and penalty haptic rendering with a local model", 0.001)
         self.model: ContactModel | None = None
         self._new_frame = False
         self._tool_velocities_given = False
-
-        self.time = 0.0
-        self.register_variable(Float64("time", causality=C.independent, variability=V.continuous, unit="s",
-                                       description="simulation time"))
         defaults = ContactParameters()
-        self.communication_step = 0.001
         fixed = dict(causality=C.parameter, variability=V.fixed)
-        self.register_variable(Float64("communication_step", **fixed, unit="s",
-                                       description="fixed communication step size (enforced)"))
-        for name, unit, text in FLOAT_PARAMETERS:
+        for name, _, _ in FLOAT_PARAMETERS:
             setattr(self, name, float(getattr(defaults, name)))
-            self.register_variable(Float64(name, **fixed, unit=unit, description=text))
+        self._register_scalars(FLOAT_PARAMETERS, C.parameter, V.fixed)
         for name, text in STRING_PARAMETERS:
             setattr(self, name, str(getattr(defaults, name)))
             self.register_variable(String(name, **fixed, description=text))
@@ -124,13 +110,11 @@ class ContactSlave(GuardedSlaveMixin, Fmi3Slave):
         self.contact_energy = 0.0
         self.passivity_energy = 0.0
         self.contact_count = 0
-        for name, unit, text in [
+        self._register_scalars([
             ("penetration_depth", "m", "largest interpenetration"),
             ("contact_energy", "J", "penalty potential energy"),
             ("passivity_energy", "J", "energy into the environment through the haptic port (>= 0: passive)"),
-        ]:
-            self.register_variable(Float64(name, causality=C.output, variability=V.continuous, unit=unit,
-                                           description=text))
+        ], C.output, V.continuous)
         self.register_variable(Int32("contact_count", causality=C.output, variability=V.discrete,
                                      description="number of active contacts"))
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 from pythonfmu3 import (
-    DefaultExperiment,
     Fmi3Causality,
     Fmi3Slave,
     Fmi3Variability,
@@ -46,21 +45,11 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        self.description = ("Extended Tensor-Mass Model of an abdominal aortic aneurysm wall "
-                            "(linear tensor-mass + non-linear and viscous tensors)")
-        self.author = "aaa-cosim"
-        self.version = "0.1.0"
-        self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=1.0 / 30.0)
-        self._setup_guard()
-        self._register_units()
+        self._declare_basics("Extended Tensor-Mass Model of an abdominal aortic aneurysm wall "
+                             "(linear tensor-mass + non-linear and viscous tensors)", 1.0 / 30.0)
         self.model: TissueModel | None = None
 
-        self.time = 0.0
-        self.register_variable(Float64("time", causality=C.independent, variability=V.continuous,
-                                       description="simulation time", unit="s"))
-
         defaults = TissueParameters()
-        self.communication_step = 1.0 / 30.0
         self.young_modulus = defaults.young_modulus
         self.poisson_ratio = defaults.poisson_ratio
         self.density = defaults.density
@@ -80,7 +69,6 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
 
         fixed = dict(causality=C.parameter, variability=V.fixed)
         params = [
-            ("communication_step", "s", "fixed communication step size (enforced)"),
             ("young_modulus", "Pa", "Young's modulus (small-strain); AAA wall 1.044 MPa"),
             ("poisson_ratio", None, "Poisson ratio in (-1, 0.5)"),
             ("density", "kg/m3", "mass density"),
@@ -89,11 +77,7 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
             ("nonlinear_strain_threshold", None, "Green strain above which ETMM corrects an element"),
             ("active_radius", "m", "radius of the active region around active_center (<= 0: whole mesh)"),
         ]
-        for name, unit, text in params:
-            kw = dict(fixed, description=text)
-            if unit:
-                kw["unit"] = unit
-            self.register_variable(Float64(name, **kw))
+        self._register_scalars(params, C.parameter, V.fixed)
         self._register_array("active_center", (3,), C.parameter, "centre of the active region", "m",
                              variability=V.fixed)
         self.register_variable(String("law", **fixed, description="material law: linear, etmm or hyperelastic"))
@@ -124,18 +108,14 @@ class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
         self.solver_residual = 0.0
         self.critical_time_step = 0.0
         self.solver_iterations = 0
-        for name, unit, text in [
+        self._register_scalars([
             ("strain_energy", "J", "elastic strain energy"),
             ("kinetic_energy", "J", "kinetic energy"),
             ("max_strain", None, "largest principal Green strain magnitude"),
             ("nonlinear_fraction", None, "fraction of active elements that paid for the non-linear correction"),
             ("solver_residual", None, "relative residual of the last implicit solve"),
             ("critical_time_step", "s", "explicit stability limit of the current mesh and material"),
-        ]:
-            kw = dict(causality=C.output, variability=V.continuous, description=text)
-            if unit:
-                kw["unit"] = unit
-            self.register_variable(Float64(name, **kw))
+        ], C.output, V.continuous)
         self.register_variable(Int32("solver_iterations", causality=C.output, variability=V.discrete,
                                      description="iterations of the last implicit solve (substeps when explicit)"))
 
