@@ -18,7 +18,8 @@ Two toolchain defects are handled here rather than hidden:
   own sources with one change: ``pyState`` becomes a reference to a heap object that is never
   destroyed, so only ``finalizePythonInterpreter`` releases it, once.
 * Python FMUs in one process share one interpreter, so the entry script of each FMU gets a
-  unique module name (``<package>_entry``).
+  unique module name (``<package>_entry``) and imports the package it carries under a unique
+  name (``<model identifier>_<package>``), never a copy the host imported already.
 """
 from __future__ import annotations
 

@@ -106,6 +106,11 @@ def enable_stable_numba_cache(package_dir) -> None:
     setattr(caching, marker, True)
 
 
+def _reason(exc: Exception) -> str:
+    """A user's mistake (ValueError) reads as its message; anything else also names its type."""
+    return str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+
+
 class _FmuLogHandler(logging.Handler):
     """Forwards library log records (warnings and above) to the FMU's logger callback."""
 
@@ -161,7 +166,6 @@ class GuardedSlaveMixin:
     def _setup_guard(self) -> None:
         self._failure: str | None = None
         self._initialized = False
-        self._step_count = 0
         handler = _FmuLogHandler(self)
         for name in self.forwarded_loggers:
             logging.getLogger(name).addHandler(handler)
@@ -179,7 +183,7 @@ class GuardedSlaveMixin:
             action()
             return True
         except Exception as exc:  # every exception becomes a logged error status, never fatal
-            self._fail(call, f"{exc}" if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}")
+            self._fail(call, _reason(exc))
             return False
 
     # -- FMI callbacks ---------------------------------------------------------------------------
@@ -196,36 +200,36 @@ class GuardedSlaveMixin:
             self._guard("fmi3ExitInitializationMode", build)
 
     def do_step(self, current_time: float, step_size: float):
-        call = f"fmi3DoStep(t={current_time:.9g}, h={step_size:.9g})"
+        # The 1 kHz path: the call's name is formatted only when something fails.
+        def call() -> str:
+            return f"fmi3DoStep(t={current_time:.9g}, h={step_size:.9g})"
+
         if self._failure is not None:
-            self.log(f"{call} refused: {self._failure}", Fmi3Status.error)
+            self.log(f"{call()} refused: {self._failure}", Fmi3Status.error)
             return Fmi3StepResult(status=Fmi3Status.error)
         if not self._initialized:
-            self._fail(call, "the instance was not initialized (call fmi3ExitInitializationMode first)")
+            self._fail(call(), "the instance was not initialized (call fmi3ExitInitializationMode first)")
             return Fmi3StepResult(status=Fmi3Status.error)
         step = float(self.communication_step)
         if abs(step_size - step) > _STEP_RELATIVE_TOLERANCE * step:
             self._fail(
-                call,
+                call(),
                 f"the communication step is fixed at {step:.9g} s (parameter communication_step); "
                 f"got {step_size:.9g} s. Step with {step:.9g} s or set communication_step before initialization.",
             )
             return Fmi3StepResult(status=Fmi3Status.error)
-
-        def advance():
+        try:
             self._step_model(current_time, step_size)
             self._publish_outputs()
-
-        if not self._guard(call, advance):
+        except Exception as exc:  # every exception becomes a logged error status, never fatal
+            self._fail(call(), _reason(exc))
             return Fmi3StepResult(status=Fmi3Status.error)
-        self._step_count += 1
         self.time = current_time + step_size
         return Fmi3StepResult(status=Fmi3Status.ok)
 
     def terminate(self):
-        logger = logging.getLogger
         for name in self.forwarded_loggers:
-            logger(name).removeHandler(self._log_handler)
+            logging.getLogger(name).removeHandler(self._log_handler)
 
     # -- declarations --------------------------------------------------------------------------
     def _register_units(self) -> None:

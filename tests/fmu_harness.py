@@ -58,6 +58,22 @@ class FmuInstance:
             return np.array(getter(self.vr(name), nValues=n))
         return getter(self.vr(name))[0]
 
+    def initialize(self):
+        self.slave.enterInitializationMode()
+        self.slave.exitInitializationMode()
+
+    def expect_step_error(self, t, dt, *words):
+        """fmi3DoStep must return fmi3Error (not fatal, not a crash) and log a reason with all words."""
+        from fmpy.fmi1 import FMICallException
+
+        try:
+            self.slave.doStep(t, dt)
+        except FMICallException as exc:
+            assert exc.status == 3, f"expected fmi3Error, got status {exc.status}"
+        else:
+            raise AssertionError("fmi3DoStep succeeded; an error status was expected")
+        assert any(all(w in m for w in words) for m in self.errors()), self.messages
+
     def errors(self):
         return [m for status, m in self.messages if status >= 3]
 

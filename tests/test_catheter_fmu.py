@@ -45,8 +45,7 @@ def test_fmu_equals_model_under_a_tip_force(catheter_fmu):
     model.reset(0.06, 0.0)
     with fmu_instance(catheter_fmu) as fmu:
         fmu.set("insertion", 0.06)
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
+        fmu.initialize()
         fmu.set("tip_force", force)
         np.testing.assert_array_equal(fmu.get("tip_force"), force)
         for k in range(200):
@@ -72,20 +71,14 @@ def test_fmu_equals_model_under_a_tip_force(catheter_fmu):
 def test_bad_parameter_gives_error_status(catheter_fmu, name, value, words):
     with fmu_instance(catheter_fmu) as fmu:
         fmu.set(name, value)
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
-        with pytest.raises(Exception):
-            fmu.slave.doStep(0.0, STEP)
-        assert any(words in m for m in fmu.errors()), fmu.messages
+        fmu.initialize()
+        fmu.expect_step_error(0.0, STEP, words)
 
 
 def test_nan_tip_force_gives_error_status(catheter_fmu):
     with fmu_instance(catheter_fmu) as fmu:
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
+        fmu.initialize()
         fmu.slave.doStep(0.0, STEP)
         fmu.set("tip_force", [0.0, np.nan, 0.0])
-        with pytest.raises(Exception):
-            fmu.slave.doStep(STEP, STEP)
-        assert any("tip_force" in m for m in fmu.errors()), fmu.messages
+        fmu.expect_step_error(STEP, STEP, "tip_force")
         assert np.all(np.isfinite(fmu.get("centerline_positions")))

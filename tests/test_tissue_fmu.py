@@ -64,8 +64,7 @@ def test_array_input_round_trip_and_outputs_match_model(tissue_fmu):
     force = np.zeros((n, 3))
     force[sac, :2] = -radial[sac] * rng.uniform(0.0, 0.02, size=(sac.sum(), 1))
     with fmu_instance(tissue_fmu) as fmu:
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
+        fmu.initialize()
         fmu.set("contact_force", force.ravel())
         np.testing.assert_array_equal(fmu.get("contact_force"), force.ravel())
         np.testing.assert_array_equal(fmu.get("surface_triangles").reshape(-1, 3), triangles)
@@ -102,36 +101,26 @@ def test_array_input_round_trip_and_outputs_match_model(tissue_fmu):
 def test_bad_parameter_gives_error_status_and_reason(tissue_fmu, name, value, words):
     with fmu_instance(tissue_fmu) as fmu:
         fmu.set(name, value)
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
-        with pytest.raises(Exception) as info:
-            fmu.slave.doStep(0.0, STEP)
-        assert "status 3" in str(info.value) or "Error" in str(info.value)
-        assert any(words in message for message in fmu.errors()), fmu.messages
+        fmu.initialize()
+        fmu.expect_step_error(0.0, STEP, words)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_non_finite_contact_force_is_refused(tissue_fmu, bad):
     with fmu_instance(tissue_fmu) as fmu:
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
+        fmu.initialize()
         force = np.zeros(fmu.size("contact_force"))
         force[11] = bad
         fmu.set("contact_force", force)
-        with pytest.raises(Exception):
-            fmu.slave.doStep(0.0, STEP)
-        assert any("contact_force" in m and "NaN/Inf" in m for m in fmu.errors()), fmu.messages
+        fmu.expect_step_error(0.0, STEP, "contact_force", "NaN/Inf")
         # the previous (finite) outputs are still readable: nothing was lost
         assert np.all(np.isfinite(fmu.get("surface_positions")))
 
 
 def test_communication_step_is_enforced(tissue_fmu):
     with fmu_instance(tissue_fmu) as fmu:
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
-        with pytest.raises(Exception):
-            fmu.slave.doStep(0.0, 0.001)
-        assert any("communication step is fixed" in m for m in fmu.errors())
+        fmu.initialize()
+        fmu.expect_step_error(0.0, 0.001, "communication step is fixed")
 
 
 def test_degenerate_mesh_file_gives_error_status(tissue_fmu, tmp_path):
@@ -142,11 +131,8 @@ def test_degenerate_mesh_file_gives_error_status(tissue_fmu, tmp_path):
     meshio.write(path, meshio.Mesh(points, [("tetra", np.array([[0, 1, 2, 3]]))]))
     with fmu_instance(tissue_fmu) as fmu:
         fmu.set("mesh_file", str(path))
-        fmu.slave.enterInitializationMode()
-        fmu.slave.exitInitializationMode()
-        with pytest.raises(Exception):
-            fmu.slave.doStep(0.0, STEP)
-        assert any("degenerate" in m for m in fmu.errors()), fmu.messages
+        fmu.initialize()
+        fmu.expect_step_error(0.0, STEP, "degenerate")
 
 
 def test_shipped_binary_is_the_patched_export_library(tissue_fmu):

@@ -7,7 +7,7 @@ Array sizes depend on the mesh, so they are structural parameters (``n_surface_n
 ``n_surface_triangles``) whose start values are those of the default AAA mesh. A user who
 changes the mesh sizes or gives a mesh file sets them to the counts of that mesh; the FMU checks
 them when it leaves initialization mode and names the right values when they do not match
-(``python -m tissue_fmu.mesh_info`` prints them without an FMU).
+(``len(aaa_mesh(...).surface()[0])`` and ``len(aaa_mesh(...).surface()[1])`` give them without an FMU).
 """
 from __future__ import annotations
 
