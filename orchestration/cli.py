@@ -1,4 +1,9 @@
-"""Command-line interface of the project (``python -m orchestration ...``)."""
+"""Command-line interface of the project (``python -m orchestration ...``).
+
+``build`` builds the FMUs, ``validate SCENE`` checks a scene and lists every problem, ``run
+[SCENE]`` runs one (default: the AAA endovascular scene), ``study NAME`` runs a study. A user's
+mistake gives a message and a non-zero exit code, never a traceback.
+"""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +12,9 @@ import sys
 from pathlib import Path
 
 logger = logging.getLogger("orchestration")
+
+DEFAULT_SCENE = "aaa_endovascular"
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
 def _cmd_build(args) -> int:
@@ -18,18 +26,110 @@ def _cmd_build(args) -> int:
             print(f"built {path}")
     except BuildError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+        return EXIT_USAGE
+    return EXIT_OK
+
+
+def ensure_fmus_built(quiet: bool = False) -> None:
+    """Build the project's FMUs into fmus/ when missing or older than their sources."""
+    from .build import available_fmus, build_fmu, fmu_is_stale
+
+    for name in available_fmus():
+        if fmu_is_stale(name):
+            if not quiet:
+                print(f"building fmus/{name}.fmu ...", flush=True)
+            build_fmu(name)
+
+
+def parse_assignments(items: list[str]) -> dict:
+    """``["contact.stiffness=800", "scene.duration=2"]`` -> typed overrides (TOML value syntax)."""
+    import tomllib
+
+    overrides = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--set {item!r}: write component.parameter=value, e.g. contact.stiffness=800")
+        key, text = item.split("=", 1)
+        try:
+            value = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text  # a bare word: a string
+        overrides[key.strip()] = value
+    return overrides
+
+
+def _load(scene_arg: str, overrides: dict | None = None):
+    from .scene import SceneError, load_scene
+
+    try:
+        return load_scene(scene_arg, overrides)
+    except SceneError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+
+
+def _cmd_validate(args) -> int:
+    from .scene import SceneError, load_scene
+
+    try:
+        overrides = parse_assignments(args.set)
+        scene = load_scene(args.scene, overrides)
+    except (SceneError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    print(f"{scene.path}: OK")
+    for comp in scene.components.values():
+        rate = "continuous" if comp.step is None else f"step {comp.step} s ({float(1 / comp.step):g} Hz)"
+        print(f"  {comp.name:12s} {comp.kind:18s} {rate}")
+    for conn in scene.connections:
+        extra = f", {conn.transition}" if conn.transition else ""
+        print(f"  {conn.source}.{conn.source_port} -> {conn.target}.{conn.target_port} ({conn.ordering}{extra})")
+    return EXIT_OK
 
 
 def _cmd_run(args) -> int:
-    from .mainjob import run_main_job
+    from .build import BuildError
+    from .master import run_scene
 
-    return run_main_job(args)
+    try:
+        ensure_fmus_built(args.quiet)
+    except BuildError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        overrides = parse_assignments(args.set)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    scene = _load(args.scene, overrides)
+    if scene is None:
+        return EXIT_USAGE
+    out = Path(args.out) if args.out else Path("results") / scene.name
+    if not args.quiet:
+        print(f"running {scene.name} ({scene.description or scene.path}) for "
+              f"{float(args.duration if args.duration else scene.duration):g} s, "
+              f"{args.hosting or scene.hosting} ...", flush=True)
+    summary, text = run_scene(scene, out, hosting=args.hosting, realtime=args.realtime or None,
+                              progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
+    if not args.quiet or summary["status"] != "completed":
+        print(text)
+    if summary["status"] != "completed":
+        print(f"error: {summary['error']}\nresults up to the failure are in {out}", file=sys.stderr)
+        return EXIT_FAILED
+    if not args.quiet:
+        print(f"results: {out}/ (summary.json, CSV per component, plots, surface .pvd for ParaView)")
+    return EXIT_OK
+
+
+def _cmd_study(args) -> int:
+    from .studies import run_study
+
+    return run_study(args)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m orchestration", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m orchestration", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command")
 
@@ -38,11 +138,31 @@ def main(argv: list[str] | None = None) -> int:
     p_build.add_argument("--dest", default=str(Path(__file__).resolve().parent.parent / "fmus"))
     p_build.set_defaults(func=_cmd_build)
 
-    p_run = sub.add_parser("run", help="run the default AAA simulation (builds the FMUs if needed)")
-    p_run.add_argument("--duration", type=float, default=2.0, help="simulated seconds (default 2)")
-    p_run.add_argument("--out", default="results/aaa_tissue", help="result folder")
-    p_run.add_argument("--quiet", action="store_true", help="no progress bar")
+    p_val = sub.add_parser("validate", help="check a scene and list every problem")
+    p_val.add_argument("scene", help="scene file, or the name of a shipped scene (scenes/<name>.toml)")
+    p_val.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
+    p_val.set_defaults(func=_cmd_validate)
+
+    p_run = sub.add_parser("run", help="run a scene (default: the AAA endovascular scene; builds the FMUs if needed)")
+    p_run.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help=f"scene file or name (default {DEFAULT_SCENE})")
+    p_run.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scene's)")
+    p_run.add_argument("--out", default=None, help="result folder (default results/<scene>)")
+    p_run.add_argument("--hosting", choices=("in-process", "out-of-process"), default=None,
+                       help="where FMUs run (default: the scene's, out-of-process for the shipped scenes)")
+    p_run.add_argument("--realtime", action="store_true", help="pace to the wall clock and count missed haptic deadlines")
+    p_run.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
+    p_run.add_argument("--no-vtu", action="store_true", help="do not write the surface time series")
+    p_run.add_argument("--quiet", action="store_true", help="no progress bar and no summary unless it fails")
     p_run.set_defaults(func=_cmd_run)
+
+    p_study = sub.add_parser("study", help="run a study: tradeoff, stability or extremes")
+    p_study.add_argument("name", choices=("tradeoff", "stability", "extremes"))
+    p_study.add_argument("--out", default=None, help="result folder (default results/study_<name>)")
+    p_study.add_argument("--quick", action="store_true", help="a reduced sweep (what the tests run)")
+    p_study.add_argument("--workers", type=int, default=None, help="parallel processes (default: CPU count)")
+    p_study.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p_study.add_argument("--quiet", action="store_true", help="no progress bar")
+    p_study.set_defaults(func=_cmd_study)
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,

@@ -1,0 +1,559 @@
+"""Scene files: what a simulation couples, at which rates, and what it records.
+
+A scene is a TOML file (annotated example: ``scenes/README.md``)::
+
+    [scene]                      name, description, duration (s), hosting, realtime
+    [fmu.<instance>]             path (to an .fmu), step (s: number or "1/30"), parameters (table)
+    [source.<name>]              kind = "piecewise_linear" | "csv" | "rigid_surface" (continuous, no step)
+    [block.<name>]               kind = "device_plant" (stepped built-in component), step, options
+    [[connection]]               from = "a.port", to = "b.port", transition, ordering
+    [record]                     <component> = [ports], surfaces, plots
+    [summary]                    peaks, energy, warnings, deadlines
+
+``load_scene`` parses and checks everything it can *before anything runs* and raises
+``SceneError`` holding every problem found, each with where it is and how to fix it; nothing a
+user writes in a scene produces a traceback. Times are exact rationals (``fractions.Fraction``):
+a step given as ``0.001`` is 1/1000, ``"1/30"`` is 1/30.
+"""
+from __future__ import annotations
+
+import logging
+import tomllib
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+from .ports import NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo, read_fmu
+
+logger = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+SCENE_DIR = REPO_ROOT / "scenes"
+FMU_DIR = REPO_ROOT / "fmus"
+
+TRANSITIONS = ("hold", "interpolate", "extrapolate", "average")
+ORDERINGS = ("gauss-seidel", "jacobi")
+HOSTINGS = ("in-process", "out-of-process")
+
+_SCENE_KEYS = {"name", "description", "duration", "hosting", "realtime", "start_time"}
+_FMU_KEYS = {"path", "step", "parameters"}
+_CONNECTION_KEYS = {"from", "to", "transition", "ordering"}
+_SUMMARY_KEYS = {"peaks", "energy", "warnings", "deadlines"}
+_SURFACE_KEYS = {"component", "positions", "triangles", "every", "point_data", "name"}
+
+
+class SceneError(ValueError):
+    """A scene has problems; ``problems`` lists every one ("where: what is wrong; the fix")."""
+
+    def __init__(self, path, problems: list[str]):
+        self.path = Path(path) if path is not None else None
+        self.problems = list(problems)
+        head = f"{self.path}: " if self.path else ""
+        count = f"{len(self.problems)} problem{'s' if len(self.problems) != 1 else ''}"
+        super().__init__(f"{head}{count}\n" + "\n".join(f"  - {p}" for p in self.problems))
+
+
+@dataclass
+class ComponentSpec:
+    """One component of a scene: an FMU, a stepped block or a continuous source."""
+
+    name: str
+    kind: str                                   # "fmu", or a block kind ("device_plant", "piecewise_linear", ...)
+    step: Fraction | None                       # None for continuous sources
+    parameters: dict = field(default_factory=dict)
+    path: Path | None = None                    # FMUs
+    table: dict = field(default_factory=dict)   # blocks: their TOML table
+    ports: dict[str, PortInfo] = field(default_factory=dict)
+    description: FmuDescription | None = None
+    block: object = None                        # blocks: the constructed block (sources are stateless)
+
+    @property
+    def is_fmu(self) -> bool:
+        return self.kind == "fmu"
+
+    @property
+    def is_continuous(self) -> bool:
+        return self.step is None
+
+
+@dataclass(frozen=True)
+class ConnectionSpec:
+    source: str
+    source_port: str
+    target: str
+    target_port: str
+    transition: str | None
+    ordering: str
+    index: int
+
+    @property
+    def label(self) -> str:
+        return f"connection {self.index} ({self.source}.{self.source_port} -> {self.target}.{self.target_port})"
+
+
+@dataclass(frozen=True)
+class SurfaceSpec:
+    component: str
+    positions: str
+    triangles: str
+    every: int = 1
+    point_data: tuple[str, ...] = ()
+    name: str = "surface"
+
+
+@dataclass
+class Scene:
+    path: Path | None
+    name: str
+    description: str
+    duration: Fraction
+    components: dict[str, ComponentSpec]
+    connections: list[ConnectionSpec]
+    record: dict[str, list[str]]
+    surfaces: list[SurfaceSpec]
+    plots: list[dict]
+    summary: dict
+    hosting: str = "out-of-process"
+    realtime: bool = False
+
+    def incoming(self, component: str) -> list[ConnectionSpec]:
+        return [c for c in self.connections if c.target == component]
+
+    def outgoing(self, component: str) -> list[ConnectionSpec]:
+        return [c for c in self.connections if c.source == component]
+
+
+# -- small parsers that collect problems instead of raising ------------------------------------
+def parse_time(value, where: str, problems: list[str], *, allow_zero: bool = False) -> Fraction | None:
+    """A time in seconds as an exact Fraction: a number (0.001 is 1/1000) or a string "1/30"."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        if isinstance(value, (int, float)):
+            if not np.isfinite(value):
+                raise ValueError
+            result = Fraction(repr(float(value))) if isinstance(value, float) else Fraction(value)
+        elif isinstance(value, str):
+            result = Fraction(value.strip())
+        else:
+            raise TypeError
+    except (TypeError, ValueError, ZeroDivisionError):
+        problems.append(f"{where}: {value!r} is not a time in seconds; write a number (0.001) or a ratio (\"1/30\")")
+        return None
+    if result < 0 or (result == 0 and not allow_zero):
+        problems.append(f"{where}: must be positive (got {value!r} s)")
+        return None
+    return result
+
+
+def _parse_endpoint(text, where: str, problems: list[str]) -> tuple[str, str] | None:
+    if not isinstance(text, str) or text.count(".") != 1 or not all(text.split(".")):
+        problems.append(f"{where}: {text!r} is not \"component.port\" (e.g. \"contact.tool_force\")")
+        return None
+    comp, port = text.split(".")
+    return comp.strip(), port.strip()
+
+
+def _unknown_keys(table: dict, allowed: set, where: str, problems: list[str]) -> None:
+    for key in table:
+        if key not in allowed:
+            problems.append(f"{where}: unknown key {key!r}; valid keys: {', '.join(sorted(allowed))}")
+
+
+def resolve_fmu_path(value, scene_dir: Path) -> tuple[Path | None, list[Path]]:
+    """An FMU path relative to the scene folder, else to ``fmus/``; returns (path or None, tried)."""
+    raw = Path(str(value))
+    tried = [raw] if raw.is_absolute() else [scene_dir / raw, FMU_DIR / raw]
+    for candidate in tried:
+        if candidate.is_file():
+            return candidate.resolve(), tried
+    return None, tried
+
+
+def _type_matches(port: PortInfo, value) -> bool:
+    values = np.ravel(np.asarray(value, dtype=object)) if isinstance(value, list) else [value]
+    if port.type == "String":
+        return all(isinstance(v, str) for v in values)
+    if port.type == "Boolean":
+        return all(isinstance(v, bool) for v in values)
+    if port.type.startswith("Float"):
+        return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+    return all(isinstance(v, int) and not isinstance(v, bool) for v in values)
+
+
+def _size_of(value) -> int:
+    return int(np.asarray(value, dtype=object).size) if isinstance(value, list) else 1
+
+
+def _kind_of(port: PortInfo) -> str:
+    if port.type == "Boolean":
+        return "Boolean"
+    if port.type.startswith("Float"):
+        return "Float"
+    return "Integer"
+
+
+# -- loading -------------------------------------------------------------------------------------
+def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
+    """Read and check a scene; raise ``SceneError`` listing every problem.
+
+    ``overrides`` maps ``"component.parameter"`` (or ``"scene.duration"``) to values that
+    replace the file's, as studies do.
+    """
+    path = Path(path)
+    if not path.suffix and not path.exists():
+        candidate = SCENE_DIR / f"{path.name}.toml"
+        if candidate.exists():
+            path = candidate
+    if not path.is_file():
+        shipped = ", ".join(sorted(p.stem for p in SCENE_DIR.glob("*.toml")))
+        raise SceneError(path, [f"scene file not found; shipped scenes: {shipped} (or give a path to a .toml file)"])
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(path, [f"TOML syntax error: {exc}"]) from None
+    return scene_from_dict(data, path.parent, path, overrides)
+
+
+def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overrides: dict | None = None) -> Scene:
+    """Build and check a scene from parsed TOML (``base_dir`` resolves relative paths)."""
+    problems: list[str] = []
+    allowed_top = {"scene", "fmu", "source", "block", "connection", "record", "summary"}
+    _unknown_keys(data, allowed_top, "top level", problems)
+    overrides = dict(overrides or {})
+
+    head = data.get("scene", {})
+    _unknown_keys(head, _SCENE_KEYS, "[scene]", problems)
+    if "duration" in overrides:
+        head = {**head, "duration": overrides.pop("duration")}
+    for key in [k for k in overrides if k.startswith("scene.")]:
+        head = {**head, key.split(".", 1)[1]: overrides.pop(key)}
+    name = str(head.get("name", path.stem if path else "scene"))
+    duration = parse_time(head.get("duration", 1.0), "[scene] duration", problems)
+    if head.get("start_time", 0) not in (0, 0.0):
+        problems.append("[scene] start_time: only 0 is supported; shift your sources instead")
+    hosting = head.get("hosting", "out-of-process")
+    if hosting not in HOSTINGS:
+        problems.append(f"[scene] hosting: {hosting!r} is not one of {', '.join(HOSTINGS)}")
+    realtime = head.get("realtime", False)
+    if not isinstance(realtime, bool):
+        problems.append(f"[scene] realtime: must be true or false (got {realtime!r})")
+
+    components: dict[str, ComponentSpec] = {}
+    _load_fmus(data.get("fmu", {}), base_dir, components, overrides, problems)
+    _load_blocks(data.get("source", {}), "source", base_dir, components, overrides, problems)
+    _load_blocks(data.get("block", {}), "block", base_dir, components, overrides, problems)
+    for key in overrides:
+        problems.append(f"override {key!r}: no such component parameter in the scene")
+    if not components:
+        problems.append("the scene has no [fmu.<name>] or [block.<name>]: nothing to simulate")
+
+    connections = _load_connections(data.get("connection", []), components, problems)
+    _check_algebraic_loops(connections, components, problems)
+    record, surfaces, plots = _load_record(data.get("record", {}), components, problems)
+    summary = data.get("summary", {})
+    _unknown_keys(summary, _SUMMARY_KEYS, "[summary]", problems)
+    for key in ("peaks", "energy", "warnings"):
+        for i, item in enumerate(summary.get(key, [])):
+            ref = _parse_endpoint(item, f"[summary] {key}[{i}]", problems)
+            if ref and (ref[0] not in components or ref[1] not in components[ref[0]].ports):
+                problems.append(f"[summary] {key}[{i}]: {item!r} is not a port of the scene")
+    if problems:
+        raise SceneError(path, problems)
+    return Scene(path=path, name=name, description=str(head.get("description", "")), duration=duration,
+                 components=components, connections=connections, record=record, surfaces=surfaces, plots=plots,
+                 summary=summary, hosting=hosting, realtime=realtime)
+
+
+def _apply_overrides(name: str, parameters: dict, overrides: dict) -> dict:
+    parameters = dict(parameters)
+    for key in [k for k in overrides if k.split(".", 1)[0] == name]:
+        parameters[key.split(".", 1)[1]] = overrides.pop(key)
+    return parameters
+
+
+def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, problems: list[str]) -> None:
+    for name, table in tables.items():
+        where = f"[fmu.{name}]"
+        if not isinstance(table, dict):
+            problems.append(f"{where}: must be a table with path, step and parameters")
+            continue
+        _unknown_keys(table, _FMU_KEYS, where, problems)
+        parameters = _apply_overrides(name, table.get("parameters", {}), overrides)
+        if "path" not in table:
+            problems.append(f"{where}: no path; add path = \"Tissue.fmu\" (looked up next to the scene, then in fmus/)")
+            continue
+        fmu_path, tried = resolve_fmu_path(table["path"], base_dir)
+        if fmu_path is None:
+            problems.append(f"{where} path: {table['path']!r} not found (looked in {', '.join(str(t.parent) for t in tried)}); "
+                            "build the FMUs with `python -m orchestration build`")
+            continue
+        try:
+            description = read_fmu(fmu_path, {k: v for k, v in parameters.items() if isinstance(v, int)})
+        except (OSError, ValueError) as exc:
+            problems.append(f"{where} path: {exc}")
+            continue
+        step_value = table.get("step", description.default_step)
+        if step_value is None:
+            problems.append(f"{where}: no step and the FMU declares no default step; add step = 0.001")
+            continue
+        step = parse_time(step_value, f"{where} step", problems)
+        ports = description.ports
+        if step is not None and "communication_step" in ports:
+            given = parameters.get("communication_step")
+            if given is not None and abs(float(given) - float(step)) > 1e-12 * float(step):
+                problems.append(f"{where} parameters.communication_step = {given} differs from step = {step_value}; "
+                                "remove the parameter (the master sets it from step)")
+            parameters["communication_step"] = float(step)
+        elif step is not None and description.default_step and abs(float(step) - description.default_step) > 1e-12:
+            problems.append(f"{where} step: this FMU's communication step is fixed at {description.default_step} s "
+                            f"and it has no communication_step parameter; use step = {description.default_step}")
+        _check_parameters(where, parameters, ports, problems)
+        components[name] = ComponentSpec(name=name, kind="fmu", step=step, parameters=parameters, path=fmu_path,
+                                         ports=ports, description=description)
+
+
+def _check_parameters(where: str, parameters: dict, ports: dict[str, PortInfo], problems: list[str]) -> None:
+    settable = ("parameter", "structuralParameter", "input")
+    for key, value in parameters.items():
+        port = ports.get(key)
+        if port is None:
+            names = sorted(n for n, p in ports.items() if p.causality in settable)
+            problems.append(f"{where} parameters.{key}: no such parameter or input; settable: {', '.join(names)}")
+            continue
+        if port.causality not in settable:
+            problems.append(f"{where} parameters.{key}: is a {port.causality}, not settable")
+            continue
+        if not _type_matches(port, value):
+            problems.append(f"{where} parameters.{key}: expects {port.type} values (got {value!r})")
+            continue
+        if port.is_array and _size_of(value) not in (port.size, 1):
+            problems.append(f"{where} parameters.{key}: expects {port.size} values ({'x'.join(map(str, port.shape))}), "
+                            f"got {_size_of(value)}")
+
+
+def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, overrides: dict,
+                 problems: list[str]) -> None:
+    from .blocks import BlockConfigError, make_block
+
+    for name, table in tables.items():
+        where = f"[{section}.{name}]"
+        if name in components:
+            problems.append(f"{where}: the name {name!r} is used twice; component names must be unique")
+            continue
+        if not isinstance(table, dict):
+            problems.append(f"{where}: must be a table with kind = ...")
+            continue
+        table = _apply_overrides(name, table, overrides)
+        step = None
+        if "step" in table:  # exact here; the block gets the float the master will step it with
+            step = parse_time(table["step"], f"{where} step", problems)
+            table = {**table, "step": float(step) if step is not None else 0.001}
+        try:
+            block = make_block(name, table, base_dir)
+        except BlockConfigError as exc:
+            problems.extend(f"{where} {p}" for p in exc.problems)
+            continue
+        continuous = not hasattr(block, "start_step")
+        if section == "source" and not continuous:
+            problems.append(f"{where}: kind {table.get('kind')!r} is stepped; declare it as [block.{name}]")
+            continue
+        if section == "block" and continuous:
+            problems.append(f"{where}: kind {table.get('kind')!r} is a continuous source; declare it as [source.{name}]")
+            continue
+        if not continuous and step is None:
+            step = parse_time(getattr(block, "step", None), f"{where} step", problems)
+        components[name] = ComponentSpec(name=name, kind=str(table.get("kind")), step=step, table=table,
+                                         ports=dict(block.ports), block=block)
+
+
+def _load_connections(items, components: dict[str, ComponentSpec], problems: list[str]) -> list[ConnectionSpec]:
+    if not isinstance(items, list):
+        problems.append("connection: write each connection as a [[connection]] table")
+        return []
+    connections: list[ConnectionSpec] = []
+    targets: dict[tuple[str, str], str] = {}
+    for index, item in enumerate(items, start=1):
+        where = f"connection {index}"
+        if not isinstance(item, dict):
+            problems.append(f"{where}: must be a table with from and to")
+            continue
+        _unknown_keys(item, _CONNECTION_KEYS, where, problems)
+        src = _parse_endpoint(item.get("from"), f"{where} from", problems)
+        dst = _parse_endpoint(item.get("to"), f"{where} to", problems)
+        if src is None or dst is None:
+            continue
+        where = f"connection {index} ({item['from']} -> {item['to']})"
+        ok = True
+        for (comp, port), role, allowed in ((src, "from", READABLE), (dst, "to", WRITABLE)):
+            spec = components.get(comp)
+            if spec is None:
+                problems.append(f"{where}: unknown component {comp!r}; components: {', '.join(components) or 'none'}")
+                ok = False
+                continue
+            info = spec.ports.get(port)
+            if info is None:
+                names = sorted(n for n, p in spec.ports.items() if p.causality in allowed)
+                problems.append(f"{where}: {comp} has no port {port!r}; "
+                                f"{'outputs' if role == 'from' else 'inputs'}: {', '.join(names)}")
+                ok = False
+            elif info.causality not in allowed:
+                article = "an" if info.causality[0] in "aeiou" else "a"
+                problems.append(f"{where}: {comp}.{port} is {article} {info.causality}; a connection goes "
+                                f"{'from an output' if role == 'from' else 'to an input or parameter'}")
+                ok = False
+        transition = item.get("transition")
+        if transition is not None and transition not in TRANSITIONS:
+            problems.append(f"{where} transition: {transition!r} is not one of {', '.join(TRANSITIONS)}")
+            ok = False
+        ordering = item.get("ordering", "gauss-seidel")
+        if ordering not in ORDERINGS:
+            problems.append(f"{where} ordering: {ordering!r} is not one of {', '.join(ORDERINGS)}")
+            ok = False
+        if not ok:
+            continue
+        out_spec, in_spec = components[src[0]], components[dst[0]]
+        out_port, in_port = out_spec.ports[src[1]], in_spec.ports[dst[1]]
+        if out_port.type not in NUMERIC_TYPES or in_port.type not in NUMERIC_TYPES:
+            problems.append(f"{where}: only numeric ports can be connected ({out_port.type} -> {in_port.type})")
+        elif _kind_of(out_port) != _kind_of(in_port):
+            problems.append(f"{where}: type mismatch, {out_port.describe()} -> {in_port.describe()}")
+        if out_port.size != in_port.size:
+            hint = _size_hint(in_spec, in_port, out_port)
+            problems.append(f"{where}: size mismatch, {out_port.size} values "
+                            f"({'x'.join(map(str, out_port.shape)) or 'scalar'}) -> {in_port.size} "
+                            f"({'x'.join(map(str, in_port.shape)) or 'scalar'}){hint}")
+        if out_port.unit and in_port.unit and out_port.unit != in_port.unit:
+            problems.append(f"{where}: unit mismatch, {out_port.unit} -> {in_port.unit}")
+        key = (dst[0], dst[1])
+        if key in targets:
+            problems.append(f"{where}: {dst[0]}.{dst[1]} is already driven by {targets[key]}; an input has one source")
+        targets[key] = where
+        is_parameter = in_port.causality != "input"
+        rates_known = not (out_spec.is_fmu and out_spec.step is None) and not (in_spec.is_fmu and in_spec.step is None)
+        rates_differ = (rates_known and not out_spec.is_continuous and not is_parameter and out_spec.step != in_spec.step)
+        if rates_differ and transition is None:
+            problems.append(f"{where}: connects a {_rate(out_spec)} output to a {_rate(in_spec)} input; name the rate "
+                            f"transition: transition = \"hold\" | \"interpolate\" | \"extrapolate\" | \"average\"")
+        if transition == "average" and not out_spec.is_continuous and out_spec.step and in_spec.step \
+                and out_spec.step > in_spec.step:
+            problems.append(f"{where} transition: \"average\" means over the fast producer's samples in the consumer's "
+                            "step, but the producer is the slower one; use hold, interpolate or extrapolate")
+        if src[0] == dst[0]:
+            problems.append(f"{where}: connects a component to itself")
+        connections.append(ConnectionSpec(src[0], src[1], dst[0], dst[1], transition, ordering, index))
+    return connections
+
+
+def _rate(spec: ComponentSpec) -> str:
+    if spec.step is None:
+        return "continuous"
+    hz = 1 / spec.step
+    return f"{float(hz):g} Hz"
+
+
+def _size_hint(spec: ComponentSpec, in_port: PortInfo, out_port: PortInfo) -> str:
+    if not spec.is_fmu or not spec.description:
+        return ""
+    md = spec.description.model_description
+    for v in md.modelVariables:
+        if v.name == in_port.name and v.dimensions:
+            refs = [d.valueReference for d in v.dimensions if d.valueReference is not None]
+            names = [w.name for w in md.modelVariables if w.valueReference in refs]
+            if names and len(out_port.shape) == len(in_port.shape):
+                fix = ", ".join(f"{n} = {out_port.shape[i]}" for i, n in enumerate(names) if i < len(out_port.shape))
+                return f"; set {spec.name} parameter {fix}"
+    return ""
+
+
+def _check_algebraic_loops(connections: list[ConnectionSpec], components: dict, problems: list[str]) -> None:
+    """A cycle of Gauss-Seidel connections has no order to step in: one of them must be Jacobi."""
+    graph: dict[str, set[str]] = {}
+    for c in connections:
+        if c.ordering == "gauss-seidel" and c.source in components and c.target in components \
+                and not components[c.source].is_continuous \
+                and components[c.target].ports.get(c.target_port, PortInfo("", "input", "")).causality == "input":
+            graph.setdefault(c.source, set()).add(c.target)
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state:
+                found = visit(nxt)
+                if found:
+                    return found
+        state[node] = 2
+        stack.pop()
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                problems.append(f"algebraic loop of gauss-seidel connections {' -> '.join(cycle)}: set "
+                                "ordering = \"jacobi\" on one of them (that input then uses the value from before the step)")
+                return
+
+
+def _load_record(table: dict, components: dict, problems: list[str]):
+    record: dict[str, list[str]] = {}
+    surfaces: list[SurfaceSpec] = []
+    plots: list[dict] = []
+    for key, value in table.items():
+        if key == "surfaces":
+            for i, item in enumerate(value):
+                where = f"[record] surfaces[{i}]"
+                if not isinstance(item, dict):
+                    problems.append(f"{where}: must be a table {{ component, positions, triangles }}")
+                    continue
+                _unknown_keys(item, _SURFACE_KEYS, where, problems)
+                comp = components.get(item.get("component"))
+                if comp is None:
+                    problems.append(f"{where}: unknown component {item.get('component')!r}")
+                    continue
+                for role in ("positions", "triangles"):
+                    if item.get(role) not in comp.ports:
+                        problems.append(f"{where} {role}: {comp.name} has no port {item.get(role)!r}")
+                for extra in item.get("point_data", []):
+                    if extra not in comp.ports:
+                        problems.append(f"{where} point_data: {comp.name} has no port {extra!r}")
+                every = item.get("every", 1)
+                if not isinstance(every, int) or every < 1:
+                    problems.append(f"{where} every: must be a positive integer (got {every!r})")
+                    every = 1
+                surfaces.append(SurfaceSpec(comp.name, item.get("positions"), item.get("triangles"), every,
+                                            tuple(item.get("point_data", [])), str(item.get("name", comp.name + "_surface"))))
+        elif key == "plots":
+            if not isinstance(value, list):
+                problems.append("[record] plots: must be a list of figures")
+            else:
+                plots = value
+        else:
+            comp = components.get(key)
+            if comp is None:
+                problems.append(f"[record] {key}: unknown component; components: {', '.join(components)}")
+                continue
+            if not isinstance(value, list):
+                problems.append(f"[record] {key}: must be a list of port names")
+                continue
+            for port in value:
+                info = comp.ports.get(port)
+                if info is None:
+                    problems.append(f"[record] {key}: no port {port!r}")
+                elif info.type not in NUMERIC_TYPES:
+                    problems.append(f"[record] {key}.{port}: only numeric ports can be recorded")
+                elif info.size > 64:
+                    problems.append(f"[record] {key}.{port}: {info.size} values is too many for a CSV column set; "
+                                    "record surfaces with [[record.surfaces]]")
+            if comp.is_continuous:
+                problems.append(f"[record] {key}: a continuous source has no steps to record at; record the input it drives")
+                continue
+            record[key] = list(value)
+    return record, surfaces, plots

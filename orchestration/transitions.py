@@ -1,0 +1,108 @@
+"""Rate transitions: the value a consumer sees from a producer that steps at another rate.
+
+A producer's outputs exist only at its communication points (integer ticks). A consumer that
+reads it at evaluation tick ``tau`` sees the samples with tick ``<= tau`` (which ones exist
+depends on the connection's ordering; see ``master``) through one of
+
+* ``hold``: the latest sample;
+* ``interpolate``: linear interpolation at ``tau - H`` (``H`` the producer's step) between the
+  two samples around it: exact for signals linear in time, one producer step of delay, never
+  ahead of the data;
+* ``extrapolate``: first order from the latest two samples, ``y_k + (tau - t_k) (y_k - y_k-1) / H``;
+* ``average``: the mean of the producer's samples in ``(tau - h, tau]`` (``h`` the consumer's
+  step), e.g. the 1 kHz contact forces over one 30 Hz tissue step. With 1 ms and 1/30 s the
+  windows hold 33 or 34 samples, counted exactly.
+
+Before a producer has two samples, interpolate and extrapolate hold the first one.
+"""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+
+class SampleHistory:
+    """The samples ``(tick, value)`` of one producer port, oldest first, pruned as consumers advance."""
+
+    __slots__ = ("step", "ticks", "values")
+
+    def __init__(self, step: int):
+        self.step = int(step)
+        self.ticks: deque[int] = deque()
+        self.values: deque[np.ndarray] = deque()
+
+    def append(self, tick: int, value: np.ndarray) -> None:
+        if self.ticks and tick <= self.ticks[-1]:
+            raise ValueError(f"samples must arrive in time order (tick {tick} after {self.ticks[-1]})")
+        self.ticks.append(int(tick))
+        self.values.append(value)
+
+    def prune(self, keep_from: int) -> None:
+        """Drop samples older than ``keep_from``, always keeping the latest two."""
+        while len(self.ticks) > 2 and self.ticks[1] <= keep_from and self.ticks[0] < keep_from:
+            self.ticks.popleft()
+            self.values.popleft()
+
+    def latest_index(self, tau: int) -> int:
+        """Index of the latest sample with tick <= tau (-1 if none)."""
+        ticks = self.ticks
+        i = len(ticks) - 1
+        while i >= 0 and ticks[i] > tau:
+            i -= 1
+        return i
+
+
+def hold(history: SampleHistory, tau: int) -> tuple[np.ndarray, int]:
+    """Latest sample at or before ``tau``; also returns its tick (to set an input only when it changes)."""
+    i = history.latest_index(tau)
+    if i < 0:
+        raise LookupError(f"no sample at or before tick {tau}")
+    return history.values[i], history.ticks[i]
+
+
+def interpolate(history: SampleHistory, tau: int) -> np.ndarray:
+    """Linear interpolation at ``tau - H`` between the samples around it (one producer step of delay)."""
+    target = tau - history.step
+    i = history.latest_index(target)
+    if i < 0:
+        return history.values[0]
+    t0 = history.ticks[i]
+    if t0 == target or i + 1 >= len(history.ticks):
+        return history.values[i]
+    t1 = history.ticks[i + 1]
+    w = (target - t0) / (t1 - t0)
+    y0, y1 = history.values[i], history.values[i + 1]
+    return y0 + w * (y1 - y0)
+
+
+def extrapolate(history: SampleHistory, tau: int) -> np.ndarray:
+    """First-order extrapolation from the latest two samples at or before ``tau``."""
+    i = history.latest_index(tau)
+    if i < 0:
+        raise LookupError(f"no sample at or before tick {tau}")
+    if i == 0:
+        return history.values[0]
+    t1, t0 = history.ticks[i], history.ticks[i - 1]
+    y1, y0 = history.values[i], history.values[i - 1]
+    if tau == t1:
+        return y1
+    return y1 + ((tau - t1) / (t1 - t0)) * (y1 - y0)
+
+
+def average(history: SampleHistory, tau: int, window: int) -> np.ndarray:
+    """Mean of the samples with tick in ``(tau - window, tau]``; the latest sample if there is none."""
+    ticks = history.ticks
+    i = history.latest_index(tau)
+    if i < 0:
+        raise LookupError(f"no sample at or before tick {tau}")
+    j = i
+    while j - 1 >= 0 and ticks[j - 1] > tau - window:
+        j -= 1
+    if ticks[j] <= tau - window:  # no sample inside the window: the producer is slower
+        return history.values[i]
+    total = history.values[j].copy()
+    for k in range(j + 1, i + 1):
+        total += history.values[k]
+    total /= (i - j + 1)
+    return total

@@ -1,0 +1,195 @@
+"""The multirate master on small synthetic FMUs, against exact rational references.
+
+Signal outputs y = a + b t + c t^2 at its communication points; Echo reports the input it had
+during each step. Every expected value is computed here with ``fractions.Fraction`` from the
+documented rule (evaluation tick, rate transition), independently of the master's code.
+"""
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from orchestration.master import run_scene
+from orchestration.recording import read_stream
+from orchestration.scene import SceneError, scene_from_dict
+
+A, B, C = 1.0, 2.0, 3.0
+
+
+def y(t: Fraction) -> Fraction:
+    return A + B * t + C * t * t
+
+
+def signal_echo_scene(fmus, signal_step, echo_step, transition, ordering, duration=0.5, extra=None):
+    data = {
+        "scene": {"name": "signal_echo", "duration": duration, "hosting": "in-process"},
+        "fmu": {
+            "signal": {"path": str(fmus["Signal"]), "step": signal_step,
+                       "parameters": {"coefficients": [A, B, C]}},
+            "echo": {"path": str(fmus["Echo"]), "step": echo_step},
+        },
+        "connection": [{"from": "signal.y", "to": "echo.u", "ordering": ordering,
+                        **({"transition": transition} if transition else {})}],
+        "record": {"echo": ["last_u", "last_t", "last_k", "last_b"], "signal": ["y", "count"]},
+    }
+    for key, value in (extra or {}).items():
+        data[key] = value
+    return data
+
+
+def run(data, out, **kwargs):
+    scene = scene_from_dict(data, out)
+    summary, _ = run_scene(scene, out / "results", progress=False, plots=False, **kwargs)
+    assert summary["status"] == "completed", summary["error"]
+    return summary
+
+
+def expected_input(t: Fraction, h_c: Fraction, H: Fraction, transition: str, ordering: str) -> Fraction:
+    """The documented rule, written out independently of the master."""
+    tau = t if ordering == "jacobi" else t + h_c
+    last = math.floor(tau / H) * H
+    if transition == "hold":
+        return y(last)
+    if transition == "interpolate":
+        target = tau - H
+        if target <= 0:
+            return y(Fraction(0)) if target < 0 else y(target)
+        s0 = math.floor(target / H) * H
+        return y(s0) + (target - s0) / H * (y(s0 + H) - y(s0))
+    if transition == "extrapolate":
+        if last == 0:
+            return y(Fraction(0))
+        return y(last) + (tau - last) / H * (y(last) - y(last - H))
+    if transition == "average":
+        ks = [k for k in range(0, int(tau / H) + 1) if tau - h_c < k * H <= tau]
+        return sum(y(k * H) for k in ks) / len(ks)
+    raise AssertionError(transition)
+
+
+@pytest.mark.parametrize("transition,ordering,signal_step,echo_step", [
+    ("hold", "jacobi", "1/30", 0.01),
+    ("hold", "gauss-seidel", "1/30", 0.01),
+    ("interpolate", "jacobi", "1/30", 0.01),
+    ("extrapolate", "jacobi", "1/30", 0.01),
+    ("extrapolate", "gauss-seidel", "1/30", 0.01),
+    ("average", "jacobi", 0.001, "1/30"),
+    ("average", "gauss-seidel", 0.001, "1/30"),
+    (None, "gauss-seidel", 0.01, 0.01),
+    (None, "jacobi", 0.01, 0.01),
+])
+def test_rate_transitions_match_the_exact_rule(synthetic_fmus, tmp_path, transition, ordering, signal_step, echo_step):
+    data = signal_echo_scene(synthetic_fmus, signal_step, echo_step, transition, ordering)
+    run(data, tmp_path)
+    t, cols = read_stream(tmp_path / "results" / "echo.csv")
+    H = Fraction(signal_step) if isinstance(signal_step, str) else Fraction(repr(signal_step))
+    h = Fraction(echo_step) if isinstance(echo_step, str) else Fraction(repr(echo_step))
+    n_steps = len(t) - 1
+    assert n_steps == math.ceil(Fraction("0.5") / h)
+    for n in range(n_steps):
+        start = n * h
+        assert cols["last_t"][n + 1] == float(start)            # time from integer ticks, bit for bit
+        want = float(expected_input(start, h, H, transition or "hold", ordering))
+        assert cols["last_u"][n + 1] == pytest.approx(want, rel=1e-14, abs=1e-14), (n, start)
+
+
+def test_average_windows_hold_33_or_34_haptic_samples(synthetic_fmus, tmp_path):
+    """1 ms into 1/30 s: the mean of the count output is the mean of the sample indices in the window."""
+    data = signal_echo_scene(synthetic_fmus, 0.001, "1/30", "average", "jacobi", duration=0.2)
+    data["connection"].append({"from": "signal.count", "to": "echo.k", "transition": "hold", "ordering": "jacobi"})
+    data["connection"][0]["from"] = "signal.y"
+    run(data, tmp_path)
+    _, cols = read_stream(tmp_path / "results" / "echo.csv")
+    # count = number of steps done = tick / 3 at each sample; hold gives the count at the frame start
+    frames = [int(k) for k in cols["last_k"][1:]]
+    assert frames == [math.floor(Fraction(n, 30) / Fraction(1, 1000)) for n in range(6)]
+
+
+def test_time_does_not_drift_over_ten_thousand_steps(synthetic_fmus, tmp_path):
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=10.0)
+    data["record"] = {"echo": ["last_t"]}
+    run(data, tmp_path)
+    t, cols = read_stream(tmp_path / "results" / "echo.csv")
+    n = np.arange(len(t))
+    assert len(t) == 10001
+    assert all(t[k] == float(Fraction(int(k), 1000)) for k in n)
+    assert all(cols["last_t"][k + 1] == float(Fraction(int(k), 1000)) for k in n[:-1])
+
+
+def test_integer_and_boolean_ports_cross_exactly(synthetic_fmus, tmp_path):
+    data = signal_echo_scene(synthetic_fmus, 0.01, 0.01, None, "gauss-seidel", duration=0.1)
+    data["connection"] += [{"from": "signal.count", "to": "echo.k"}, {"from": "signal.odd", "to": "echo.b"}]
+    run(data, tmp_path)
+    _, cols = read_stream(tmp_path / "results" / "echo.csv")
+    steps = np.arange(1, 11)
+    np.testing.assert_array_equal(cols["last_k"][1:], steps)
+    np.testing.assert_array_equal(cols["last_b"][1:], steps % 2)
+
+
+def test_initialization_propagates_outputs_before_the_first_step(synthetic_fmus, tmp_path):
+    """Echo's first step sees y(0) = a, set during initialization (not Echo's start value)."""
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.01, "hold", "jacobi", duration=0.02)
+    run(data, tmp_path)
+    _, cols = read_stream(tmp_path / "results" / "echo.csv")
+    assert cols["last_u"][1] == A
+
+
+def test_in_process_and_out_of_process_write_identical_files(synthetic_fmus, tmp_path):
+    data = signal_echo_scene(synthetic_fmus, 0.001, "1/30", "average", "jacobi", duration=0.3)
+    data["connection"].append({"from": "signal.y3", "to": "echo.v", "transition": "extrapolate", "ordering": "jacobi"})
+    data["record"]["echo"].append("last_v")
+    files = {}
+    for hosting in ("in-process", "out-of-process", "in-process"):
+        out = tmp_path / hosting
+        out.mkdir(exist_ok=True)
+        run(data, out, hosting=hosting)
+        files.setdefault(hosting, []).append({name: (out / "results" / name).read_bytes()
+                                              for name in ("echo.csv", "signal.csv")})
+    first, second = files["in-process"]
+    assert first == second                            # deterministic
+    assert files["out-of-process"][0] == first        # and the same out of process
+
+
+def test_an_fmu_error_mid_run_is_reported_and_results_are_kept(synthetic_fmus, tmp_path):
+    data = {
+        "scene": {"name": "faulty", "duration": 1.0, "hosting": "in-process"},
+        "fmu": {"faulty": {"path": str(synthetic_fmus["Faulty"]), "step": 0.01,
+                           "parameters": {"error_at": 0.25}}},
+        "record": {"faulty": ["y"]},
+    }
+    scene = scene_from_dict(data, tmp_path)
+    summary, text = run_scene(scene, tmp_path / "results", progress=False)
+    assert summary["status"] == "failed"
+    assert "faulty" in summary["error"] and "fmi3DoStep" in summary["error"] and "0.25" in summary["error"]
+    assert "requested error" in summary["error"]
+    t, cols = read_stream(tmp_path / "results" / "faulty.csv")
+    assert t[-1] == pytest.approx(0.25) and len(t) == 26      # every step before the failure is on disk
+    assert (tmp_path / "results" / "summary.json").exists()
+
+
+def test_a_crashing_worker_is_reported_and_the_master_survives(synthetic_fmus, tmp_path):
+    data = {
+        "scene": {"name": "crash", "duration": 1.0, "hosting": "out-of-process"},
+        "fmu": {"faulty": {"path": str(synthetic_fmus["Faulty"]), "step": 0.01,
+                           "parameters": {"crash_at": 0.5}}},
+        "record": {"faulty": ["y"]},
+    }
+    scene = scene_from_dict(data, tmp_path)
+    summary, _ = run_scene(scene, tmp_path / "results", progress=False)
+    assert summary["status"] == "failed"
+    assert "faulty" in summary["error"] and "0.5" in summary["error"]
+    assert "SIGABRT" in summary["error"] or "died" in summary["error"]
+    t, _ = read_stream(tmp_path / "results" / "faulty.csv")
+    assert t[-1] == pytest.approx(0.5)
+
+
+def test_an_algebraic_loop_of_gauss_seidel_connections_is_rejected(synthetic_fmus, tmp_path):
+    data = signal_echo_scene(synthetic_fmus, 0.01, 0.01, None, "gauss-seidel")
+    data["fmu"]["echo2"] = {"path": str(synthetic_fmus["Echo"]), "step": 0.01}
+    data["connection"] = [{"from": "echo.last_u", "to": "echo2.u"}, {"from": "echo2.last_u", "to": "echo.u"}]
+    with pytest.raises(SceneError, match="algebraic loop"):
+        scene_from_dict(data, tmp_path)
+    data["connection"][1]["ordering"] = "jacobi"
+    scene_from_dict(data, tmp_path)

@@ -1,0 +1,104 @@
+"""Rate transitions against exact rational arithmetic.
+
+Ticks are integers and the signals take integer values, so every expected value is computed
+with ``fractions.Fraction`` and the transitions must match it exactly (or to the one rounding
+of a final division)."""
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from orchestration import transitions as tr
+from orchestration.master import tick_base
+from orchestration.scene import scene_from_dict
+
+
+def history_of(signal, step, n):
+    h = tr.SampleHistory(step)
+    for k in range(n):
+        h.append(k * step, np.array([float(signal(k * step))]))
+    return h
+
+
+def linear(t):
+    return 7 + 3 * t
+
+
+def test_hold_takes_the_latest_sample_at_or_before_tau():
+    h = history_of(linear, 4, 5)          # samples at 0, 4, 8, 12, 16
+    for tau in range(0, 20):
+        value, tick = tr.hold(h, tau)
+        assert tick == (tau // 4) * 4
+        assert value[0] == linear(tick)
+    with pytest.raises(LookupError):
+        tr.hold(h, -1)
+
+
+def test_interpolate_is_exact_for_a_linear_signal_one_step_late():
+    h = history_of(linear, 4, 6)
+    for tau in range(4, 21):
+        # the value at tau - H, exactly: weights k/4 are dyadic, values are integers
+        assert tr.interpolate(h, tau)[0] == float(Fraction(linear(Fraction(tau - 4))))
+    # before there is a sample to look back to, the first one is held
+    assert tr.interpolate(h, 2)[0] == linear(0)
+
+
+def test_extrapolate_is_exact_for_a_linear_signal_and_first_order_otherwise():
+    h = history_of(linear, 4, 4)
+    for tau in range(12, 16):
+        assert tr.extrapolate(h, tau)[0] == linear(tau)
+    quad = history_of(lambda t: t * t, 4, 4)     # 0, 16, 64, 144 at 0, 4, 8, 12
+    # y(12) + (tau - 12) * (y(12) - y(8)) / 4
+    for tau in range(12, 16):
+        assert tr.extrapolate(quad, tau)[0] == 144 + (tau - 12) * (144 - 64) / 4
+    single = history_of(linear, 4, 1)
+    assert tr.extrapolate(single, 3)[0] == linear(0)
+
+
+def test_average_over_one_30hz_step_of_1khz_samples_counts_33_or_34():
+    # ticks of 1/3000 s: haptic samples every 3 ticks, tissue steps of 100 ticks
+    h = tr.SampleHistory(3)
+    for k in range(0, 400):
+        h.append(3 * k, np.array([float(k * k)]))
+    counts = []
+    for frame in range(1, 4):
+        tau = 100 * frame
+        inside = [k for k in range(400) if tau - 100 < 3 * k <= tau]
+        counts.append(len(inside))
+        expected = Fraction(sum(k * k for k in inside), len(inside))
+        assert tr.average(h, tau, 100)[0] == float(expected)
+    assert counts == [33, 33, 34]
+
+
+def test_average_of_vectors_is_componentwise():
+    h = tr.SampleHistory(1)
+    for k in range(10):
+        h.append(k, np.array([k, -2.0 * k, 1.0]))
+    np.testing.assert_array_equal(tr.average(h, 9, 4), [7.5, -15.0, 1.0])
+
+
+def test_prune_keeps_what_consumers_can_still_ask_for():
+    h = history_of(linear, 3, 50)
+    h.prune(100)
+    assert h.ticks[0] <= 100 < h.ticks[1] + 3
+    assert tr.hold(h, 100)[1] == 99
+    h.prune(10 ** 9)
+    assert len(h.ticks) == 2
+
+
+def test_samples_must_arrive_in_order():
+    h = history_of(linear, 3, 3)
+    with pytest.raises(ValueError, match="time order"):
+        h.append(3, np.zeros(1))
+
+
+def test_tick_base_is_the_lcm_of_the_step_denominators(tmp_path):
+    scene = scene_from_dict({
+        "scene": {"duration": 2.0},
+        "source": {"a": {"kind": "piecewise_linear", "times": [0.0, 1.0], "outputs": {"y": [0.0, 1.0]}}},
+        "block": {"d": {"kind": "device_plant", "step": "1/30"},
+                  "e": {"kind": "device_plant", "step": 0.001}},
+    }, tmp_path)
+    base = tick_base(scene)
+    assert base == 3000
+    assert scene.components["d"].step * base == 100 and scene.components["e"].step * base == 3
