@@ -155,7 +155,7 @@ class Simulation:
 
     def __init__(self, scene: Scene, out_dir: Path | str, *, hosting: str | None = None,
                  realtime: bool | None = None, progress: bool = True, duration: Fraction | float | None = None,
-                 plots: bool = True, vtu: bool = True):
+                 plots: bool = True, vtu: bool = True, observe: dict[str, list[str]] | None = None):
         self.scene = scene
         self.out_dir = Path(out_dir)
         self.hosting = hosting or scene.hosting
@@ -165,6 +165,10 @@ class Simulation:
             Fraction(duration) if duration is not None else scene.duration)
         self.make_plots = plots
         self.write_vtu = vtu
+        #: extra ports to read after every step (studies): {component: [port, ...]}
+        self.extra_observed = dict(observe or {})
+        #: the latest outputs of every component, {component: {port: array}}, kept after the run
+        self.final_outputs: dict[str, dict[str, np.ndarray]] = {}
         self.base = math.lcm(tick_base(scene), self.duration.denominator)
         self.end = int(self.duration * self.base)
         self.components: dict[str, _Component] = {}
@@ -236,6 +240,13 @@ class Simulation:
             comp = self.components[surface.component]
             for port in (surface.positions, *surface.point_data):
                 _add(comp.observed, port)
+        for name, ports in self.extra_observed.items():
+            if name not in self.components:
+                raise OrchestrationError(f"observe: no stepped component {name!r} in the scene")
+            for port in ports:
+                if port not in self.components[name].spec.ports:
+                    raise OrchestrationError(f"observe: {name} has no port {port!r}")
+                _add(self.components[name].observed, port)
 
         # Hosts: workers start loading their FMUs concurrently.
         for comp in self.components.values():
@@ -333,6 +344,7 @@ class Simulation:
         return values
 
     def _store(self, comp: _Component, tick: int, outputs: dict[str, np.ndarray]) -> None:
+        self.final_outputs[comp.name] = outputs
         for port, histories in comp.histories.items():
             value = outputs[port]
             for history in histories:

@@ -199,8 +199,8 @@ def _kind_of(port: PortInfo) -> str:
 def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     """Read and check a scene; raise ``SceneError`` listing every problem.
 
-    ``overrides`` maps ``"component.parameter"`` (or ``"scene.duration"``) to values that
-    replace the file's, as studies do.
+    ``overrides`` maps ``"component.parameter"`` (``"component.step"`` for the step,
+    ``"scene.duration"``) to values that replace the file's, as studies and ``--set`` do.
     """
     path = Path(path)
     if not path.suffix and not path.exists():
@@ -281,6 +281,8 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             problems.append(f"{where}: must be a table with path, step and parameters")
             continue
         _unknown_keys(table, _FMU_KEYS, where, problems)
+        if f"{name}.step" in overrides:  # "tissue.step" overrides the step, not a parameter
+            table = {**table, "step": overrides.pop(f"{name}.step")}
         parameters = _apply_overrides(name, table.get("parameters", {}), overrides)
         if "path" not in table:
             problems.append(f"{where}: no path; add path = \"Tissue.fmu\" (looked up next to the scene, then in fmus/)")

@@ -1,0 +1,464 @@
+"""Result recording: streamed CSV per component, VTU surface time series, run summary.
+
+Rows go to disk as they are produced, each component at its own rate, so a run that fails or is
+killed keeps everything up to that point:
+
+* every stream is a CSV file ``<component>.csv`` with a quoted header row (``"time"`` first, array
+  ports expanded to ``"name[0]"``, ``"name[1]"``, ...) and one unquoted row of floats per sample,
+  written with ``repr`` so the values read back bit for bit;
+* rows are collected in memory and handed to the OS at least every ``flush_interval`` wall
+  seconds (by the writer itself and by a small background thread, so rows are not held back while
+  the caller is busy elsewhere), always as whole lines, and at :meth:`Recorder.close`, which is
+  also registered with :mod:`atexit`;
+* units are kept apart in ``units.json`` so the CSV header stays plain;
+* a tissue surface is a series of ``.vtu`` files plus a ParaView collection ``<name>.pvd`` that is
+  rewritten atomically after every frame, so a killed run still opens in ParaView.
+"""
+from __future__ import annotations
+
+import atexit
+import csv
+import io
+import json
+import logging
+import math
+import os
+import threading
+import time as _time
+import xml.etree.ElementTree as ET
+from numbers import Real
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_float_repr = float.__repr__  # exact shortest round-trip text; refuses ints/bools, which we convert first
+
+
+class RecordingError(ValueError):
+    """A stream or surface series was declared or written inconsistently."""
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` so readers see either the old or the new file, never half of one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", encoding="utf-8", newline="\n") as handle:
+        handle.write(text)  # no fsync: this guards against the process dying, not the machine
+    os.replace(tmp, path)
+
+
+def _column_names(name: str, size: int) -> list[str]:
+    return [name] if size == 1 else [f"{name}[{i}]" for i in range(size)]
+
+
+class _Stream:
+    """One component's CSV file: fixed port list, pending lines not yet handed to the OS."""
+
+    __slots__ = ("component", "path", "ports", "n_values", "fd", "pending")
+
+    def __init__(self, component: str, path: Path, ports: list[tuple[str, int]], fd: int):
+        self.component = component
+        self.path = path
+        self.ports = ports
+        self.n_values = 1 + sum(size for _, size in ports)  # time + values
+        self.fd = fd
+        self.pending: list[str] = []
+
+
+class Recorder:
+    """Streams component results, surface frames and units to ``out_dir`` as they are produced.
+
+    The master owns one recorder per run: ``add_stream`` once per recorded component (before the
+    first ``write``), then ``write`` every time that component produces outputs; ``close`` at the
+    end (idempotent; also runs at interpreter exit so an exception in the caller still leaves
+    complete rows on disk). Not meant to be shared between processes.
+    """
+
+    def __init__(self, out_dir: Path | str, flush_interval: float = 0.2):
+        if not (isinstance(flush_interval, Real) and math.isfinite(flush_interval) and flush_interval > 0):
+            raise RecordingError(f"flush_interval must be a finite number of seconds > 0 (got {flush_interval!r}): "
+                                 "e.g. 0.2 hands rows to the OS five times per second")
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.flush_interval = float(flush_interval)
+        self._streams: dict[str, _Stream] = {}
+        self._units: dict[str, dict[str, str]] = {}
+        self._surfaces: dict[str, dict] = {}
+        self._files: dict[str, Path] = {}
+        self._lock = threading.Lock()  # the flusher thread and the writer share the pending lists
+        self._next_flush = _time.monotonic() + self.flush_interval
+        self._closed = False
+        self._pid = os.getpid()  # a forked child must not flush (duplicate) the parent's pending rows
+        self._stop = threading.Event()
+        self._flusher = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
+        self._flusher.start()
+        atexit.register(self.close)
+
+    # ------------------------------------------------------------------ CSV streams
+    def add_stream(self, component: str, columns: list[tuple[str, int, str | None]]) -> Path:
+        """Declare ``component``'s recorded ports as ``(port name, size, unit)``; writes the header at once."""
+        self._check_open("add_stream")
+        if not isinstance(component, str) or not component or any(c in component for c in '/\\\0'):
+            raise RecordingError(f"component must be a non-empty name usable as a file name (got {component!r})")
+        if component in self._streams:
+            raise RecordingError(f"stream {component!r} is already declared: declare each component once")
+        if component in self._surfaces or component == "units":
+            raise RecordingError(f"stream name {component!r} clashes with another recorded file: rename it")
+        ports: list[tuple[str, int]] = []
+        header = ["time"]
+        units: dict[str, str] = {"time": "s"}
+        for entry in columns:
+            try:
+                name, size, unit = entry
+            except (TypeError, ValueError):
+                raise RecordingError(f"{component}: column entries are (port name, size, unit) tuples (got {entry!r})")
+            if not isinstance(name, str) or not name or name == "time" or "[" in name:
+                raise RecordingError(f"{component}: port name {name!r} is not usable as a column: give the port's "
+                                     "name without brackets ('time' is reserved for the first column)")
+            if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+                raise RecordingError(f"{component}.{name}: size must be an integer >= 1 (got {size!r})")
+            if any(name == p for p, _ in ports):
+                raise RecordingError(f"{component}: port {name!r} is listed twice")
+            if unit is not None and not isinstance(unit, str):
+                raise RecordingError(f"{component}.{name}: unit must be a string or None (got {unit!r})")
+            ports.append((name, int(size)))
+            names = _column_names(name, int(size))
+            header.extend(names)
+            if unit:
+                units.update(dict.fromkeys(names, unit))
+        path = self.out_dir / f"{component}.csv"
+        head = io.StringIO()
+        csv.writer(head, quoting=csv.QUOTE_NONNUMERIC, lineterminator="\n").writerow(header)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        os.write(fd, head.getvalue().encode("utf-8"))
+        self._streams[component] = _Stream(component, path, ports, fd)
+        self._files[component] = path
+        self._units[component] = units
+        units_path = self.out_dir / "units.json"
+        _atomic_write_text(units_path, json.dumps(self._units, indent=1, sort_keys=True) + "\n")
+        self._files["units"] = units_path
+        log.debug("recording %s: %d columns -> %s", component, len(header), path)
+        return path
+
+    def write(self, component: str, time: float, values: dict[str, np.ndarray]) -> None:
+        """Append one row: ``time`` then every declared port's values (float64 arrays of the declared size)."""
+        # Hot path (called at up to 1 kHz per stream): build the row from .tolist() and join the
+        # exact reprs; anything unusual drops to _row_slow, which converts or explains the error.
+        if self._closed:
+            self._check_open("write")
+        try:
+            stream = self._streams[component]
+            row = [float(time)]
+            for name, _ in stream.ports:
+                row.extend(values[name].tolist())
+            line = ",".join(map(_float_repr, row))
+            if len(row) != stream.n_values:
+                raise TypeError
+        except (KeyError, TypeError, ValueError, AttributeError):
+            stream, line = self._row_slow(component, time, values)
+        line += "\n"
+        with self._lock:
+            stream.pending.append(line)
+        if _time.monotonic() >= self._next_flush:
+            self.flush()
+
+    def _row_slow(self, component, time, values) -> tuple[_Stream, str]:
+        self._check_open("write")
+        stream = self._streams.get(component)
+        if stream is None:
+            raise RecordingError(f"no stream {component!r}: call add_stream({component!r}, columns) before write "
+                                 f"(declared: {sorted(self._streams)})")
+        try:
+            row = [float(time)]
+        except (TypeError, ValueError):
+            raise RecordingError(f"{component}: time must be a number of seconds (got {time!r})") from None
+        for name, size in stream.ports:
+            if name not in values:
+                raise RecordingError(f"{component} at t = {row[0]!r}: no value for recorded port {name!r}; "
+                                     f"got {sorted(values)}")
+            try:
+                arr = np.asarray(values[name], dtype=np.float64).ravel()
+            except (TypeError, ValueError):
+                raise RecordingError(f"{component}.{name} at t = {row[0]!r}: value is not numeric "
+                                     f"({type(values[name]).__name__})") from None
+            if arr.size != size:
+                raise RecordingError(f"{component}.{name} at t = {row[0]!r}: expected {size} values, got {arr.size}; "
+                                     "the port size must match the one given to add_stream")
+            row.extend(arr.tolist())
+        return stream, ",".join(map(_float_repr, row))
+
+    # ------------------------------------------------------------------ surfaces
+    def add_surface_series(self, name: str, triangles: np.ndarray) -> Path:
+        """Declare a surface time series with fixed ``(m, 3)`` triangle connectivity; returns the ``.pvd`` path."""
+        self._check_open("add_surface_series")
+        if not isinstance(name, str) or not name or any(c in name for c in '/\\\0'):
+            raise RecordingError(f"surface name must be a non-empty name usable as a file name (got {name!r})")
+        if name in self._surfaces or name in self._streams or name == "units":
+            raise RecordingError(f"surface series {name!r} clashes with another recorded file: rename it")
+        tri = np.asarray(triangles)
+        if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0 or not np.issubdtype(tri.dtype, np.integer):
+            raise RecordingError(f"surface {name!r}: triangles must be a non-empty (m, 3) integer array "
+                                 f"(got shape {tri.shape}, dtype {tri.dtype})")
+        if tri.min() < 0:
+            raise RecordingError(f"surface {name!r}: triangle vertex indices must be >= 0 (got {int(tri.min())})")
+        frame_dir = self.out_dir / name
+        frame_dir.mkdir(exist_ok=True)
+        pvd = self.out_dir / f"{name}.pvd"
+        self._surfaces[name] = {"triangles": np.ascontiguousarray(tri, dtype=np.int64), "frames": [],
+                                "dir": frame_dir, "pvd": pvd}
+        self._write_pvd(name)
+        self._files[name] = pvd
+        return pvd
+
+    def write_surface(self, name: str, time: float, positions: np.ndarray,
+                      point_data: dict[str, np.ndarray] | None = None) -> None:
+        """Write one frame ``<name>/<name>_NNNNN.vtu`` and rewrite ``<name>.pvd`` to list it."""
+        import meshio  # only runs that record surfaces pay for the import
+
+        self._check_open("write_surface")
+        series = self._surfaces.get(name)
+        if series is None:
+            raise RecordingError(f"no surface series {name!r}: call add_surface_series first "
+                                 f"(declared: {sorted(self._surfaces)})")
+        t = float(time)
+        if not math.isfinite(t):
+            raise RecordingError(f"surface {name!r}: time must be finite (got {time!r})")
+        pts = np.asarray(positions, dtype=np.float64)
+        if pts.ndim == 1 and pts.size % 3 == 0:
+            pts = pts.reshape(-1, 3)  # flat port layout x0, y0, z0, x1, ...
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise RecordingError(f"surface {name!r} at t = {t!r}: positions must be (n, 3) or flat 3n "
+                                 f"(got shape {np.shape(positions)})")
+        tri = series["triangles"]
+        if int(tri.max()) >= pts.shape[0]:
+            raise RecordingError(f"surface {name!r} at t = {t!r}: triangles index vertex {int(tri.max())} "
+                                 f"but only {pts.shape[0]} positions were given")
+        data = {}
+        for key, value in (point_data or {}).items():
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.ndim == 1 and arr.size == 3 * pts.shape[0] and arr.size != pts.shape[0]:
+                arr = arr.reshape(-1, 3)
+            if arr.shape not in ((pts.shape[0],), (pts.shape[0], 3)):
+                raise RecordingError(f"surface {name!r} point data {key!r}: expected shape ({pts.shape[0]},) or "
+                                     f"({pts.shape[0]}, 3), got {arr.shape}")
+            data[key] = arr
+        index = len(series["frames"])
+        frame = series["dir"] / f"{name}_{index:05d}.vtu"
+        tmp = frame.with_name(f".{frame.name}.tmp")
+        mesh = meshio.Mesh(pts, [("triangle", tri)], point_data=data)
+        meshio.write(tmp, mesh, file_format="vtu")
+        os.replace(tmp, frame)  # the .pvd never names a half-written frame
+        series["frames"].append((t, frame))
+        self._write_pvd(name)
+        self._files[f"{name}[{index}]"] = frame
+
+    def _write_pvd(self, name: str) -> None:
+        series = self._surfaces[name]
+        root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+        collection = ET.SubElement(root, "Collection")
+        for t, frame in series["frames"]:
+            ET.SubElement(collection, "DataSet", timestep=repr(t), group="", part="0",
+                          file=frame.relative_to(self.out_dir).as_posix())
+        ET.indent(root)
+        text = '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+        _atomic_write_text(series["pvd"], text)
+
+    # ------------------------------------------------------------------ flushing and closing
+    def flush(self) -> None:
+        """Hand every pending row to the OS (whole lines only)."""
+        with self._lock:
+            self._next_flush = _time.monotonic() + self.flush_interval
+            for stream in self._streams.values():
+                if stream.pending and stream.fd >= 0:
+                    data = "".join(stream.pending).encode("utf-8")
+                    stream.pending.clear()
+                    view = memoryview(data)
+                    while view:  # os.write may write less than asked (full disk, signals)
+                        view = view[os.write(stream.fd, view):]
+
+    def _flush_periodically(self) -> None:
+        while not self._stop.wait(self.flush_interval / 2):
+            try:
+                self.flush()
+            except OSError as exc:  # e.g. disk full; the writer's own flush will raise it to the caller
+                log.error("recorder: periodic flush failed: %s", exc)
+
+    def close(self) -> None:
+        """Flush and close every file; safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+        if os.getpid() != self._pid:
+            return
+        self._stop.set()
+        if self._flusher.is_alive() and self._flusher is not threading.current_thread():
+            self._flusher.join(timeout=5)
+        try:
+            self.flush()
+        finally:
+            with self._lock:
+                for stream in self._streams.values():
+                    if stream.fd >= 0:
+                        os.close(stream.fd)
+                        stream.fd = -1
+            atexit.unregister(self.close)
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _check_open(self, call: str) -> None:
+        if self._closed:
+            raise RecordingError(f"Recorder.{call}: the recorder for {self.out_dir} is closed")
+
+    @property
+    def files(self) -> dict[str, Path]:
+        """Every file written so far, by label.
+
+        Labels: the component name (its CSV), ``units``, the surface name (its .pvd), ``name[i]`` (frame i).
+        """
+        return dict(self._files)
+
+
+# ---------------------------------------------------------------------- reading back
+def read_stream(path: Path | str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Time array and ``{column: values}`` from a recorded CSV.
+
+    A truncated last line (the run was killed while writing it) is skipped; a malformed line in the
+    middle is skipped with a warning.
+    """
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    end = text.rfind("\n")
+    if end < 0:
+        raise RecordingError(f"{path}: no complete header line; the file is empty or was cut before the header")
+    if end != len(text) - 1:
+        log.info("%s: skipping truncated last line (%d characters)", path, len(text) - 1 - end)
+    text = text[:end + 1]
+    first = text.index("\n")
+    header = next(csv.reader([text[:first]]))
+    if not header or header[0] != "time":
+        raise RecordingError(f"{path}: not a recorded stream (first column is {header[:1]}, expected 'time')")
+    body = text[first + 1:]
+    n = len(header)
+    if body:
+        try:
+            data = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2)
+            if data.shape[1] != n:
+                raise ValueError
+        except ValueError:
+            data = _parse_rows_leniently(path, body, n)
+    else:
+        data = np.empty((0, n))
+    return data[:, 0].copy(), {name: data[:, i].copy() for i, name in enumerate(header[1:], start=1)}
+
+
+def _parse_rows_leniently(path: Path, body: str, n: int) -> np.ndarray:
+    rows = []
+    for number, line in enumerate(body.splitlines(), start=2):
+        fields = line.split(",")
+        try:
+            if len(fields) != n:
+                raise ValueError(f"{len(fields)} fields, expected {n}")
+            rows.append([float(x) for x in fields])
+        except ValueError as exc:
+            log.warning("%s line %d skipped: %s", path, number, exc)
+    return np.array(rows, dtype=np.float64).reshape(-1, n)
+
+
+def port_values(columns: dict[str, np.ndarray], port: str) -> np.ndarray:
+    """A port's samples as ``(n_rows, size)``: the column itself, or ``port[0]``, ``port[1]``, ... stacked."""
+    if port in columns:
+        return columns[port][:, None]
+    parts = []
+    while f"{port}[{len(parts)}]" in columns:
+        parts.append(columns[f"{port}[{len(parts)}]"])
+    if not parts:
+        raise KeyError(port)
+    return np.column_stack(parts)
+
+
+# ---------------------------------------------------------------------- summary
+def _to_json(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"summary value of type {type(value).__name__} is not JSON serialisable")
+
+
+def write_summary(out_dir: Path | str, summary: dict) -> Path:
+    """Save ``summary`` as ``out_dir/summary.json`` (atomically; numpy values become plain numbers)."""
+    if not isinstance(summary, dict):
+        raise RecordingError(f"summary must be a dict (got {type(summary).__name__})")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "summary.json"
+    _atomic_write_text(path, json.dumps(summary, indent=2, default=_to_json) + "\n")
+    return path
+
+
+_MAX_LIST_LINES = 10
+
+
+def _format_scalar(value) -> str:
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if value is None:
+        return "-"
+    return str(value)
+
+
+def _is_quantity(value) -> bool:
+    return isinstance(value, dict) and "value" in value and set(value) <= {"value", "unit"}
+
+
+def _format_section(summary: dict, indent: str) -> list[str]:
+    lines: list[str] = []
+    leaves = [k for k, v in summary.items() if not (isinstance(v, dict) and not _is_quantity(v))
+              and not isinstance(v, (list, tuple))]
+    width = max((len(str(k)) for k in leaves), default=0)
+    for key, value in summary.items():
+        label = str(key)
+        if _is_quantity(value):
+            unit = value.get("unit") or ""
+            lines.append(f"{indent}{label:<{width}}  {_format_scalar(value['value'])} {unit}".rstrip())
+        elif isinstance(value, dict):
+            lines.append(f"{indent}{label}:")
+            lines.extend(_format_section(value, indent + "  ") or [f"{indent}  (none)"])
+        elif isinstance(value, (list, tuple, np.ndarray)):
+            items = list(value)
+            if items and all(isinstance(x, (Real, np.generic)) and not isinstance(x, bool) for x in items) \
+                    and len(items) <= _MAX_LIST_LINES:
+                lines.append(f"{indent}{label}:  " + ", ".join(_format_scalar(x) for x in items))
+                continue
+            lines.append(f"{indent}{label}: {len(items) if items else 'none'}")
+            for item in items[:_MAX_LIST_LINES]:
+                lines.append(f"{indent}  - {_format_scalar(item)}")
+            if len(items) > _MAX_LIST_LINES:
+                lines.append(f"{indent}  ... and {len(items) - _MAX_LIST_LINES} more")
+        else:
+            lines.append(f"{indent}{label:<{width}}  {_format_scalar(value)}")
+    return lines
+
+
+def format_summary(summary: dict) -> str:
+    """A readable text block of ``summary``.
+
+    The title is ``summary["title"]`` (default "Run summary"); every other entry is a line
+    ``label  value``; a value ``{"value": x, "unit": u}`` prints as ``label  x u``; nested dicts
+    are indented sections; lists print one item per line (at most 10, then "... and N more"),
+    short lists of numbers on one line; floats with 4 significant digits.
+    """
+    body = {k: v for k, v in summary.items() if k != "title"}
+    title = str(summary.get("title", "Run summary"))
+    return "\n".join([title, "=" * len(title), *_format_section(body, "  ")])
