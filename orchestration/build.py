@@ -18,7 +18,7 @@ Two toolchain defects are handled here rather than hidden:
   own sources with one change: ``pyState`` becomes a reference to a heap object that is never
   destroyed, so only ``finalizePythonInterpreter`` releases it, once.
 * Python FMUs in one process share one interpreter, so the entry script of each FMU gets a
-  unique module name (``<package>_entry``) and imports the package it carries under a unique
+  unique module name (``<model>_<package>_entry``) and imports the package it carries under a unique
   name (``<model identifier>_<package>``), never a copy the host imported already.
 """
 from __future__ import annotations
@@ -109,7 +109,9 @@ class FmuSpec:
 
     @property
     def entry_module(self) -> str:
-        return f"{self.package}_entry"
+        # named after the model too: pythonfmu3 reuses an entry module already imported under
+        # the same name, so two FMUs built from one package need two names
+        return f"{self.model_identifier.lower()}_{self.package}_entry"
 
 
 FMU_SPECS: dict[str, FmuSpec] = {

@@ -537,7 +537,9 @@ class Simulation:
             summary["deadlines"] = {"haptic_steps": self.deadline_steps, "missed": self.deadline_misses,
                                     "worst_lateness_s": self.worst_lateness}
         files = self.recorder.files if self.recorder is not None else {}
-        summary["results"] = {"folder": str(self.out_dir), **{k: str(v) for k, v in files.items()}}
+        # every file but the individual surface frames (the .pvd lists those)
+        summary["results"] = {"folder": str(self.out_dir),
+                              **{k: str(v) for k, v in files.items() if not k.endswith("]")}}
         return summary
 
     def _install_signal_handlers(self):

@@ -29,3 +29,22 @@ def catheter_fmu(fmu_dir) -> Path:
 @pytest.fixture(scope="session")
 def contact_fmu(fmu_dir) -> Path:
     return build_fmu("Contact", fmu_dir)
+
+
+# -- synthetic FMUs for the orchestrator's host tests (tests/synthetic/synthetic_fmu) ------------
+from orchestration.build import FmuSpec, build_fmu_from_spec  # noqa: E402
+
+SYNTHETIC_ROOT = Path(__file__).resolve().parent / "synthetic"
+
+
+SYNTHETIC_SPECS = {
+    name: FmuSpec(name, "synthetic_fmu", "synthetic_fmu.fmu", f"{name}Slave", source_root=SYNTHETIC_ROOT)
+    for name in ("Signal", "Echo", "Faulty")
+}
+
+
+@pytest.fixture(scope="session")
+def synthetic_fmus(tmp_path_factory) -> dict[str, Path]:
+    """Signal, Echo and Faulty built once per session: name -> path of the .fmu."""
+    dest = tmp_path_factory.mktemp("synthetic_fmus")
+    return {name: build_fmu_from_spec(spec, dest) for name, spec in SYNTHETIC_SPECS.items()}

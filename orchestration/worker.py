@@ -1,0 +1,389 @@
+"""Hosting an FMU in its own process, so that a crashing FMU cannot take the master down.
+
+The worker (a "spawn" child) runs an :class:`~orchestration.hosting.InProcessFmu`. Commands and
+replies are tiny tuples over a ``multiprocessing.Pipe``; every value array moves through one
+``SharedMemory`` block allocated by ``configure``: ``[inputs | observed outputs]`` as float64
+slots laid out by :func:`~orchestration.hosting.slot_layout`. A step is: the master writes the
+inputs into their slots and sends ``("step", t, h, which)``; the worker pushes those slots into
+the FMU, steps, reads the observed outputs into their slots and replies. No array is pickled.
+
+Each reply carries the FMU's log messages since the previous one; they land in ``messages`` and
+the ``orchestration.fmu.<name>`` logger of the master. While waiting, the master watches the
+worker's process sentinel as well as the pipe, so a worker that dies (segfault, abort, kill)
+raises :class:`~orchestration.errors.WorkerCrash` instead of hanging or killing the master.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing
+import select
+import signal
+import time
+from multiprocessing.shared_memory import SharedMemory
+
+import numpy as np
+
+from .errors import FmuCallError, OrchestrationError, WorkerCrash
+from .hosting import _LOG_LEVELS, InProcessFmu, check_port_lists, slot_layout
+from .ports import FmuDescription, PortInfo
+
+logger = logging.getLogger(__name__)
+
+#: While waiting for a reply, how often the master checks that the worker is still alive (ms).
+_LIVENESS_INTERVAL_MS = 500
+#: How long terminate() waits for the worker to shut down cleanly before killing it (s).
+_SHUTDOWN_TIMEOUT = 10.0
+
+
+def _exit_description(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "exit status unknown"
+    if exitcode < 0:
+        try:
+            return f"killed by signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exited with code {exitcode}"
+
+
+class WorkerFmu:
+    """The :class:`~orchestration.hosting.ComponentHost` protocol, with the FMU in a worker process.
+
+    ``start_timeout`` bounds the worker's start (interpreter, imports); FMU calls have no
+    timeout, since a model step may legitimately take long.
+    """
+
+    def __init__(self, name: str, description: FmuDescription, start_timeout: float = 120.0):
+        self.name = name
+        self.description = description
+        self.ports: dict[str, PortInfo] = dict(description.ports)
+        self.messages: list[tuple[int, str]] = []
+        self.start_timeout = float(start_timeout)
+        self._logger = logging.getLogger(f"orchestration.fmu.{name}")
+        self._process = None
+        self._conn = None
+        self._poller = None
+        self._shm: SharedMemory | None = None
+        self._time: float | None = None
+        self._crash_reason: str | None = None
+        self._pending: tuple[str, float] | None = None
+        self._terminated = False
+        self._inputs: list[str] = []
+        self._input_slots: dict[str, np.ndarray] = {}
+        self._input_index: dict[str, int] = {}
+        self._output_views: dict[str, np.ndarray] = {}
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+    def instantiate(self) -> None:
+        if self._process is not None:
+            raise RuntimeError(f"{self.name}: instantiate() was called twice")
+        if self._terminated:
+            raise RuntimeError(f"{self.name}: instantiate() after terminate()")
+        context = multiprocessing.get_context("spawn")
+        parent_end, child_end = context.Pipe(duplex=True)
+        # The FMPy model description object stays here: the worker needs only the ports.
+        description = dataclasses.replace(self.description, model_description=None)
+        self._process = context.Process(target=_worker_main, args=(child_end, self.name, description),
+                                        name=f"fmu-worker-{self.name}", daemon=True)
+        self._process.start()
+        child_end.close()  # so that the worker's death reads as end-of-file here
+        self._conn = parent_end
+        self._receive("start worker", timeout=self.start_timeout)
+        self._call("fmi3InstantiateCoSimulation", ("instantiate",))
+
+    def set_values(self, values: dict[str, object]) -> None:
+        self._call("set_values", ("set_values", dict(values)))
+
+    def get_values(self, names: list[str]) -> dict[str, np.ndarray]:
+        return self._call("get_values", ("get_values", list(names)))
+
+    def enter_initialization(self, start_time: float) -> None:
+        self._time = float(start_time)
+        self._call("fmi3EnterInitializationMode", ("enter_initialization", self._time))
+
+    def exit_initialization(self) -> None:
+        self._call("fmi3ExitInitializationMode", ("exit_initialization",))
+
+    def configure(self, inputs: list[str], observed: list[str]) -> None:
+        inputs, observed = list(inputs), list(observed)
+        check_port_lists(self.name, self.ports, inputs, observed)
+        self._require_worker("configure")
+        in_layout, in_size = slot_layout(self.ports, inputs)
+        out_layout, out_size = slot_layout(self.ports, observed)
+        self._release_shared_memory()
+        self._shm = SharedMemory(create=True, size=8 * max(1, in_size + out_size))
+        block = np.ndarray((in_size + out_size,), dtype=np.float64, buffer=self._shm.buf)
+        block[:] = 0.0
+        self._inputs = inputs
+        self._input_index = {name: i for i, name in enumerate(inputs)}
+        self._input_slots = {name: block[a:b] for name, (a, b) in in_layout.items()}
+        self._output_views = {name: block[in_size + a:in_size + b] for name, (a, b) in out_layout.items()}
+        del block
+        self._call("configure", ("configure", self._shm.name, inputs, observed))
+
+    # -- hot path ----------------------------------------------------------------------------------
+    def _write_inputs(self, values: dict[str, np.ndarray]):
+        """Copy ``values`` into their slots; return what the worker must push (None: all inputs)."""
+        slots = self._input_slots
+        for name, value in values.items():
+            slot = slots.get(name)
+            if slot is None:
+                raise ValueError(f"{self.name}.{name} is not among the configured inputs "
+                                 f"({', '.join(self._inputs) or 'none'}): list it in configure()")
+            value = np.asarray(value, dtype=np.float64)
+            if value.size != slot.size:
+                raise ValueError(f"{self.name}.{name} expects {slot.size} value(s), got {value.size}")
+            np.copyto(slot, value.reshape(slot.size))
+        if len(values) == len(self._inputs):
+            return None
+        index = self._input_index
+        return tuple(index[name] for name in values)
+
+    def set_inputs(self, values: dict[str, np.ndarray]) -> None:
+        self._require_idle("set_inputs")
+        which = self._write_inputs(values)
+        self._call("set_inputs", ("set_inputs", which))
+
+    def get_outputs(self) -> dict[str, np.ndarray]:
+        self._require_idle("get_outputs")
+        self._call("get_outputs", ("get_outputs",))
+        return {name: view.copy() for name, view in self._output_views.items()}
+
+    def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
+        self._require_idle("start_step")
+        which = self._write_inputs(inputs) if inputs else ()
+        self._time = t
+        self._send("fmi3DoStep", ("step", t, h, which))
+        self._pending = ("fmi3DoStep", t + h)
+
+    def finish_step(self) -> dict[str, np.ndarray]:
+        if self._pending is None:
+            raise RuntimeError(f"{self.name}: finish_step() without start_step()")
+        call, t_end = self._pending
+        self._pending = None
+        self._receive(call)
+        self._time = t_end
+        return {name: view.copy() for name, view in self._output_views.items()}
+
+    def wait_handle(self):
+        """The pipe: readable when the step is done (or the worker died)."""
+        return self._conn
+
+    # -- shutdown ----------------------------------------------------------------------------------
+    def terminate(self) -> None:
+        """Shut the worker down (fmi3Terminate, free), kill it if it does not stop, free shared memory.
+
+        Idempotent; never raises; ``messages`` keep what the worker sent.
+        """
+        if self._terminated:
+            return
+        self._terminated = True
+        process, conn = self._process, self._conn
+        try:
+            if process is not None and conn is not None and self._crash_reason is None and process.is_alive():
+                if self._pending is not None:  # the reply of a step in flight comes first
+                    self._pending = None
+                    try:
+                        self._receive("fmi3DoStep", timeout=_SHUTDOWN_TIMEOUT)
+                    except FmuCallError:
+                        pass
+                conn.send(("terminate",))
+                self._receive("fmi3Terminate", timeout=_SHUTDOWN_TIMEOUT)
+        except Exception as exc:  # terminate never raises: the worker is killed below if need be
+            logger.warning("%s: clean worker shutdown failed: %s", self.name, exc)
+        if process is not None:
+            try:
+                process.join(_SHUTDOWN_TIMEOUT)
+                if process.is_alive():
+                    logger.warning("%s: worker did not exit within %.0f s; killing it", self.name, _SHUTDOWN_TIMEOUT)
+                    process.kill()
+                    process.join(5.0)
+                process.close()
+            except Exception as exc:
+                logger.warning("%s: stopping the worker process failed: %s", self.name, exc)
+        if conn is not None:
+            try:
+                conn.close()
+            except Exception:
+                pass
+        self._release_shared_memory()
+
+    def _release_shared_memory(self) -> None:
+        self._input_slots, self._output_views = {}, {}
+        if self._shm is None:
+            return
+        shm, self._shm = self._shm, None
+        try:
+            shm.close()
+        except Exception as exc:  # a view still exported: unlink anyway, the memory goes with the process
+            logger.warning("%s: closing shared memory failed: %s", self.name, exc)
+        try:
+            shm.unlink()
+        except FileNotFoundError:
+            pass
+        except Exception as exc:
+            logger.warning("%s: unlinking shared memory %s failed: %s", self.name, shm.name, exc)
+
+    # -- messaging ---------------------------------------------------------------------------------
+    def _call(self, call: str, message: tuple):
+        self._require_idle(call)
+        self._send(call, message)
+        return self._receive(call)
+
+    def _send(self, call: str, message: tuple) -> None:
+        self._require_worker(call)
+        try:
+            self._conn.send(message)
+        except (BrokenPipeError, ConnectionError, EOFError, OSError):
+            raise self._crashed(call) from None
+
+    def _receive(self, call: str, timeout: float | None = None):
+        conn = self._conn
+        # One poll object watching the pipe and the process sentinel: a few us per wait, where
+        # multiprocessing.connection.wait builds a selector each time (10-20 us).
+        poller = self._poller
+        if poller is None:
+            poller = self._poller = select.poll()
+            poller.register(conn.fileno(), select.POLLIN)
+            poller.register(self._process.sentinel, select.POLLIN)
+        conn_fd = conn.fileno()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            events = poller.poll(_LIVENESS_INTERVAL_MS)
+            if any(fd == conn_fd for fd, _ in events):
+                break
+            if events or not self._process.is_alive():  # the sentinel: the worker is gone
+                if conn.poll():  # it answered before it went away
+                    break
+                raise self._crashed(call)
+            if deadline is not None and time.monotonic() > deadline:
+                self._process.kill()
+                self._process.join(5.0)
+                self._crash_reason = f"the worker did not answer within {timeout:.0f} s and was killed"
+                raise WorkerCrash(self.name, call, self._time, self._crash_reason)
+        try:
+            kind, payload, messages = conn.recv()
+        except (EOFError, ConnectionError, OSError):
+            raise self._crashed(call) from None
+        for status, text in messages:
+            self.messages.append((status, text))
+            self._logger.log(_LOG_LEVELS.get(status, logging.ERROR), "%s", text)
+        if kind == "raise":
+            raise payload
+        return payload
+
+    def _crashed(self, call: str) -> WorkerCrash:
+        """The WorkerCrash for ``call``; the first one records why the worker is gone."""
+        if self._crash_reason is None:
+            process = self._process
+            exitcode = None
+            if process is not None:
+                process.join(2.0)
+                exitcode = process.exitcode
+            pid = process.pid if process is not None else "?"
+            self._crash_reason = f"the worker process (pid {pid}) died: {_exit_description(exitcode)}"
+        return WorkerCrash(self.name, call, self._time, self._crash_reason)
+
+    def _require_worker(self, call: str) -> None:
+        if self._crash_reason is not None:
+            raise WorkerCrash(self.name, call, self._time, self._crash_reason)
+        if self._terminated:
+            raise RuntimeError(f"{self.name}: {call} after terminate()")
+        if self._process is None:
+            raise RuntimeError(f"{self.name}: call instantiate() before {call}")
+
+    def _require_idle(self, call: str) -> None:
+        if self._pending is not None:
+            raise RuntimeError(f"{self.name}: {call} while a step is in flight: call finish_step() first")
+
+
+# -- the worker process ----------------------------------------------------------------------------
+class _WorkerState:
+    """What the worker holds: the FMU host and its views of the shared memory block."""
+
+    def __init__(self, name: str, description: FmuDescription):
+        self.host = InProcessFmu(name, description, log_to_logger=False)
+        self.shm: SharedMemory | None = None
+
+    def configure(self, shm_name: str, inputs: list[str], observed: list[str]) -> None:
+        self.detach()
+        ports = self.host.ports
+        _, in_size = slot_layout(ports, inputs)
+        _, out_size = slot_layout(ports, observed)
+        self.shm = SharedMemory(name=shm_name)
+        block = np.ndarray((in_size + out_size,), dtype=np.float64, buffer=self.shm.buf)
+        self.host._bind(inputs, observed, block[:in_size], block[in_size:])
+
+    def detach(self) -> None:
+        if self.shm is not None:
+            self.host._inputs, self.host._input_list, self.host._groups, self.host._output_views = {}, [], [], {}
+            try:
+                self.shm.close()
+            except BufferError:  # a view is still alive; the mapping goes with the process
+                pass
+            self.shm = None
+
+
+def _worker_main(conn, name: str, description: FmuDescription) -> None:
+    """Serve commands until "terminate" or until the master goes away."""
+    # Ctrl-C in the terminal reaches the whole process group: the master handles it and shuts
+    # the worker down, so the worker must not die of it first.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    state = _WorkerState(name, description)
+    host = state.host
+    handlers = {
+        "instantiate": lambda: host.instantiate(),
+        "set_values": lambda values: host.set_values(values),
+        "enter_initialization": lambda t: host.enter_initialization(t),
+        "exit_initialization": lambda: host.exit_initialization(),
+        "configure": lambda shm_name, inputs, observed: state.configure(shm_name, inputs, observed),
+        "set_inputs": lambda which: host._push_indices(which),
+        "get_outputs": lambda: host._pull(),
+        "get_values": lambda names: host.get_values(names),
+    }
+    conn.send(("ok", None, ()))
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the master is gone
+            break
+        command = message[0]
+        try:
+            if command == "step":
+                _, t, h, which = message
+                if which != ():
+                    host._push_indices(which)
+                host._do_step(t, h)
+                host._pull()
+                payload = None
+            elif command == "terminate":
+                break
+            else:
+                payload = handlers[command](*message[1:])
+            kind = "ok"
+        except Exception as exc:  # sent to the master, raised there
+            kind, payload = "raise", exc
+        _reply(conn, kind, payload, host)
+    state.detach()
+    host.terminate()
+    try:
+        _reply(conn, "ok", None, host)
+    except (OSError, ValueError):
+        pass
+    conn.close()
+
+
+def _reply(conn, kind: str, payload, host: InProcessFmu) -> None:
+    messages = ()
+    if host.messages:
+        messages = tuple(host.messages)
+        host.messages.clear()
+    try:
+        conn.send((kind, payload, messages))
+    except (OSError, ValueError):
+        raise
+    except Exception as exc:  # an exception that cannot be pickled
+        error = OrchestrationError(f"{host.name}: {type(payload).__name__}: {payload} (raised in the worker)")
+        conn.send(("raise", error, messages))
+        logger.debug("unpicklable reply %r: %s", payload, exc)

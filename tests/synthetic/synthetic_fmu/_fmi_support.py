@@ -1,0 +1,1 @@
+../../../src/fmu_support.py

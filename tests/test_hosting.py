@@ -1,0 +1,282 @@
+"""FMU hosts of the orchestrator: in-process (raw ctypes) and worker process (pipe + shared memory).
+
+Known answers: the synthetic FMUs' outputs are exact functions of time and inputs; the worker
+must reproduce the in-process results bit for bit; errors and crashes must name the component,
+the call and the simulated time; nothing may leak (shared memory, processes).
+"""
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestration.errors import FmuCallError, WorkerCrash
+from orchestration.hosting import ComponentHost, InProcessFmu, PortConfigurationError
+from orchestration.ports import read_fmu
+from orchestration.worker import WorkerFmu
+
+HOSTS = {"in_process": InProcessFmu, "worker": WorkerFmu}
+H = 0.01  # the synthetic FMUs' communication step
+
+
+def shm_exists(name: str) -> bool:
+    return (Path("/dev/shm") / name.lstrip("/")).exists()
+
+
+@contextmanager
+def hosted(kind: str, name: str, fmu: Path, structural: dict | None = None):
+    host = HOSTS[kind](name, read_fmu(fmu, structural))
+    try:
+        yield host
+    finally:
+        host.terminate()
+
+
+def start(host, inputs=(), observed=(), values=None, t0=0.0):
+    host.instantiate()
+    if values:
+        host.set_values(values)
+    host.enter_initialization(t0)
+    host.configure(list(inputs), list(observed))
+    host.exit_initialization()
+
+
+@pytest.fixture(params=list(HOSTS))
+def kind(request) -> str:
+    return request.param
+
+
+# -- the real Contact FMU: worker and in-process agree bit for bit ---------------------------------
+def scripted_tool(k: int, n_points: int = 31) -> np.ndarray:
+    """A straight catheter piece in the sac (z 60..70 mm), pushed off-axis to x = 26 mm and back.
+
+    The default AAA lumen is about 25 mm in radius there and the tool radius is 1 mm, so the
+    tool touches the wall for roughly the middle half of the 200 steps.
+    """
+    x = 0.016 + 0.010 * np.sin(np.pi * k / 200)
+    z = np.linspace(0.060, 0.070, n_points)
+    return np.column_stack([np.full(n_points, x), np.zeros(n_points), z]).ravel()
+
+
+CONTACT_OUTPUTS = ["tool_force", "tip_force", "tissue_contact_force", "penetration_depth", "contact_energy",
+                   "passivity_energy", "contact_count"]
+
+
+def run_contact(kind: str, fmu: Path, steps: int = 200) -> list[dict[str, np.ndarray]]:
+    with hosted(kind, "Contact", fmu) as host:
+        host.instantiate()
+        host.enter_initialization(0.0)
+        host.configure(["tool_positions"], CONTACT_OUTPUTS)
+        host.set_inputs({"tool_positions": scripted_tool(0)})
+        host.exit_initialization()
+        results = []
+        for k in range(steps):
+            host.start_step(k * 0.001, 0.001, {"tool_positions": scripted_tool(k)})
+            results.append(host.finish_step())
+    return results
+
+
+def test_contact_worker_matches_in_process_bitwise(contact_fmu):
+    local = run_contact("in_process", contact_fmu)
+    remote = run_contact("worker", contact_fmu)
+    force = np.array([r["tool_force"] for r in local])
+    touching = np.array([r["contact_count"][0] > 0 for r in local])
+    # contact really happens, and only for part of the run
+    assert 20 < touching.sum() < 180
+    assert np.all(np.linalg.norm(force[~touching], axis=1) == 0.0)
+    # while the tool moves out (first half) the wall pushes it back towards the axis (-x); while
+    # it retracts, penalty damping may pull slightly. The tissue always gets the reaction.
+    pushing = touching & (np.arange(len(local)) <= 100)
+    assert pushing.sum() > 10 and np.all(force[pushing, 0] < 0.0)
+    for r in (r for r, t in zip(local, touching) if t):
+        reaction = r["tissue_contact_force"].reshape(-1, 3).sum(axis=0)
+        np.testing.assert_allclose(reaction, -r["tool_force"], rtol=1e-9, atol=1e-12)
+    for a, b in zip(local, remote):
+        assert a.keys() == b.keys() == set(CONTACT_OUTPUTS)
+        for name in a:
+            assert a[name].dtype == b[name].dtype == np.float64
+            assert a[name].tobytes() == b[name].tobytes(), name
+
+
+# -- synthetic FMUs: exact known answers -----------------------------------------------------------
+def test_signal_is_the_polynomial_bit_for_bit(kind, synthetic_fmus):
+    a, b, c = 0.3, -1.7, 2.9
+    with hosted(kind, "sig", synthetic_fmus["Signal"]) as host:
+        start(host, observed=["y", "y3", "count", "odd"], values={"coefficients": np.array([a, b, c])})
+        out = host.get_outputs()
+        assert out["y"].tolist() == [a] and out["count"].tolist() == [0.0] and out["odd"].tolist() == [0.0]
+        for k in range(25):
+            t = k * H
+            host.start_step(t, H, {})
+            out = host.finish_step()
+            now = t + H
+            y = a + b * now + c * now * now
+            assert out["y"].tobytes() == np.array([y]).tobytes()
+            assert out["y3"].tolist() == [y, now, 1.0]
+            assert out["count"].tolist() == [k + 1.0]
+            assert out["odd"].tolist() == [float((k + 1) % 2)]
+
+
+def test_every_value_type_round_trips(kind, synthetic_fmus):
+    observed = ["last_u", "last_v", "last_k", "last_b", "last_w", "last_t", "integral_u", "label_length",
+                "flag_echo"]
+    script = [  # u, v, k, b: extreme but exact values of each type
+        (0.1, [1 / 3, -0.0, 5e-324], 2**31 - 1, True),
+        (-1e300, [np.pi, 1e-300, -2.5], -(2**31), False),
+        (np.nextafter(1.0, 2.0), [7.0, 8.0, 9.0], 0, True),
+    ]
+    with hosted(kind, "echo", synthetic_fmus["Echo"], {"n_w": 4}) as host:
+        assert isinstance(host, ComponentHost)
+        start(host, inputs=["u", "v", "k", "b", "w"], observed=observed,
+              values={"label": "hello world", "flag": True, "n_w": 4, "u": 42.0})
+        before = host.get_outputs()
+        # before the first step last_* are the start values (u = 42 is only the input's value now)
+        assert before["last_u"].tolist() == [0.0] and before["last_w"].tolist() == [0.0] * 4
+        assert before["label_length"].tolist() == [11.0] and before["flag_echo"].tolist() == [1.0]
+        integral = 0.0
+        for k, (u, v, i, flag) in enumerate(script):
+            w = np.arange(4.0) * (k + 1) + 0.25
+            t = k * H
+            host.start_step(t, H, {"u": np.array([u]), "v": np.array(v), "k": np.array([float(i)]),
+                                   "b": np.array([float(flag)]), "w": w})
+            out = host.finish_step()
+            integral += u * H
+            assert out["last_u"].tobytes() == np.array([u]).tobytes()
+            assert out["last_v"].tobytes() == np.array(v).tobytes()  # -0.0 and the subnormal survive
+            assert out["last_k"].tolist() == [float(i)] and out["last_b"].tolist() == [float(flag)]
+            assert out["last_w"].tolist() == w.tolist() and out["last_t"].tolist() == [t]
+            assert out["integral_u"].tolist() == [integral]
+        # inputs not given keep their previous values; given as a subset they still land
+        host.start_step(len(script) * H, H, {"k": np.array([-5.0])})
+        out = host.finish_step()
+        assert out["last_k"].tolist() == [-5.0] and out["last_u"].tolist() == [script[-1][0]]
+        # values that the FMU's type cannot hold exactly are refused before reaching it
+        with pytest.raises(ValueError, match="whole numbers"):
+            host.set_inputs({"k": np.array([2.5])})
+        with pytest.raises(ValueError, match=r"0 or 1"):
+            host.set_inputs({"b": np.array([0.5])})
+        with pytest.raises(ValueError, match="expects 3 value"):
+            host.set_inputs({"v": np.zeros(2)})
+        with pytest.raises(ValueError, match="not among the configured inputs"):
+            host.set_inputs({"last_u": np.zeros(1)})
+
+
+def test_set_values_refuses_wrong_types_with_the_port_named(synthetic_fmus):
+    with hosted("in_process", "echo", synthetic_fmus["Echo"]) as host:
+        host.instantiate()
+        for values, words in [({"n_w": 2.5}, "whole number"), ({"flag": "yes"}, "Boolean"),
+                              ({"label": 3}, "String"), ({"nope": 1.0}, "no variable"),
+                              ({"n_w": -1}, "out of its range")]:
+            with pytest.raises(PortConfigurationError, match=words):
+                host.set_values(values)
+    with pytest.raises(PortConfigurationError, match="not an input"):
+        with hosted("in_process", "echo", synthetic_fmus["Echo"]) as host:
+            host.instantiate()
+            host.configure(["last_u"], [])
+
+
+# -- errors and crashes ----------------------------------------------------------------------------
+def test_fmu_error_names_call_time_and_logged_reason(kind, synthetic_fmus, caplog):
+    with hosted(kind, "faulty", synthetic_fmus["Faulty"]) as host:
+        start(host, observed=["y"], values={"error_at": 0.05})
+        with pytest.raises(FmuCallError) as info:
+            for k in range(10):
+                host.start_step(k * H, H, {})
+                assert host.finish_step()["y"].tolist() == [k * H + H]
+        error = info.value
+        assert not isinstance(error, WorkerCrash)
+        assert (error.component, error.call, error.time, error.status) == ("faulty", "fmi3DoStep", 5 * H, 3)
+        assert "requested error at t = 0.05" in error.reason
+        assert str(error).startswith("faulty: fmi3DoStep at t = 0.050000 s failed (fmi3Error): ")
+        assert any(status == 3 and "requested error" in text for status, text in host.messages)
+        assert any(r.name == "orchestration.fmu.faulty" and "requested error" in r.getMessage()
+                   for r in caplog.records)
+        # the failed instance refuses further steps, and says why
+        with pytest.raises(FmuCallError, match="fmi3DoStep") as info:
+            host.start_step(6 * H, H, {})
+            host.finish_step()
+        assert "refused" in info.value.reason
+
+
+def test_worker_crash_is_reported_and_a_new_worker_starts(synthetic_fmus):
+    children_before = set(multiprocessing.active_children())
+    host = WorkerFmu("faulty", read_fmu(synthetic_fmus["Faulty"]))
+    try:
+        start(host, observed=["y"], values={"crash_at": 0.03})
+        shm_name = host._shm.name
+        with pytest.raises(WorkerCrash) as info:
+            for k in range(10):
+                host.start_step(k * H, H, {})
+                host.finish_step()
+        crash = info.value
+        assert (crash.component, crash.call, crash.time) == ("faulty", "fmi3DoStep", 3 * H)
+        assert "SIGABRT" in crash.reason and "faulty: fmi3DoStep at t = 0.030000 s failed" in str(crash)
+        with pytest.raises(WorkerCrash, match="get_outputs.*SIGABRT"):
+            host.get_outputs()
+    finally:
+        host.terminate()
+    host.terminate()
+    assert not shm_exists(shm_name)
+    # the master lives on: a new worker in the same process works
+    with hosted("worker", "sig", synthetic_fmus["Signal"]) as signal_host:
+        start(signal_host, observed=["count"])
+        signal_host.start_step(0.0, H, {})
+        assert signal_host.finish_step()["count"].tolist() == [1.0]
+    assert set(multiprocessing.active_children()) == children_before
+
+
+def test_killed_idle_worker_is_reported_by_the_next_call(synthetic_fmus):
+    with hosted("worker", "sig", synthetic_fmus["Signal"]) as host:
+        start(host, observed=["y"])
+        os.kill(host._process.pid, signal.SIGKILL)
+        with pytest.raises(WorkerCrash, match=r"sig: fmi3DoStep at t = 0\.000000 s failed: .*SIGKILL"):
+            host.start_step(0.0, H, {})
+            host.finish_step()
+
+
+# -- concurrency handle, termination and leaks -----------------------------------------------------
+def test_workers_step_concurrently_through_their_wait_handles(synthetic_fmus):
+    with hosted("worker", "a", synthetic_fmus["Signal"]) as a, hosted("worker", "b", synthetic_fmus["Signal"]) as b:
+        for host in (a, b):
+            start(host, observed=["count"])
+        for k in range(3):
+            for host in (a, b):
+                host.start_step(k * H, H, {})
+            pending = {a.wait_handle(): a, b.wait_handle(): b}
+            while pending:
+                for handle in multiprocessing.connection.wait(list(pending), timeout=30):
+                    assert pending.pop(handle).finish_step()["count"].tolist() == [k + 1.0]
+    with hosted("in_process", "c", synthetic_fmus["Signal"]) as c:
+        assert c.wait_handle() is None
+
+
+def test_terminate_is_idempotent_and_leaves_nothing(kind, synthetic_fmus):
+    host = HOSTS[kind]("echo", read_fmu(synthetic_fmus["Echo"]))
+    start(host, inputs=["u"], observed=["last_u"])
+    host.start_step(0.0, H, {"u": np.array([1.0])})
+    host.finish_step()
+    host.start_step(H, H, {"u": np.array([2.0])})  # a step still in flight at terminate
+    if kind == "worker":
+        shm_name = host._shm.name
+        assert shm_exists(shm_name)  # the check below can see a leak
+        pid = host._process.pid
+    else:
+        unzip_dir = Path(host._unzip_dir)
+        assert unzip_dir.is_dir()
+    host.terminate()
+    host.terminate()
+    if kind == "worker":
+        assert not shm_exists(shm_name)
+        with pytest.raises(ProcessLookupError):  # reaped, not a zombie
+            os.kill(pid, 0)
+        assert not [p for p in multiprocessing.active_children() if p.name == "fmu-worker-echo"]
+    else:
+        assert not unzip_dir.exists()
+    with pytest.raises(RuntimeError, match="after terminate"):
+        host.get_outputs()
