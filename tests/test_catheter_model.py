@@ -400,3 +400,20 @@ def test_bad_inputs_name_the_input(name, kwargs):
         model.step(**args)
     # The failed call left the model usable and unchanged.
     assert model.time == 0.0
+
+
+def test_chain_back_through_a_vertex_at_exactly_one_spacing():
+    """Regression (found by the catheter_tube scene): the chain reached a vertex at exactly one
+    joint spacing, the sphere root came out a rounding past the segment end and the search ran
+    off the first segment (IndexError)."""
+    import numpy as np
+
+    from catheter_fmu.geometry import CenterlineCurve
+
+    curve = CenterlineCurve(np.array([[0, 0, 0], [0, 0, 0.05], [0.0085, 0, 0.09]]))
+    for s in (0.06, np.nextafter(0.06, 0.0), np.nextafter(0.06, 1.0)):
+        chain = curve.chain_back(float(s), 26, 0.005)
+        gaps = np.linalg.norm(np.diff(np.vstack([curve.point(float(s)), chain]), axis=0), axis=1)
+        np.testing.assert_allclose(gaps, 0.005, rtol=1e-9)
+        # every joint lies on the polyline (x = 0 on the first segment, z <= 0.05 there)
+        assert np.all(np.abs(chain[2:, 0]) < 1e-12)

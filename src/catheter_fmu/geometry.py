@@ -206,6 +206,9 @@ class CenterlineCurve:
                     break
             # The next point lies behind vertex j: intersect the sphere |x - p_cur| = spacing
             # with earlier segments; take the root nearest the current point along the curve.
+            # A root at the far end of a segment (the sphere passes through its vertex) may come
+            # out a rounding above the segment length: accept it there, clamped, rather than
+            # searching on past segment 0.
             jj = j - 1
             while True:
                 rel = self.vertices[jj] - p_cur
@@ -214,8 +217,13 @@ class CenterlineCurve:
                 disc = b * b - c
                 if disc >= 0.0:
                     root = -b - math.sqrt(disc)
-                    if root <= self.segment_lengths[jj] and (root >= 0.0 or jj == 0):
+                    length = float(self.segment_lengths[jj])
+                    if root <= length * (1.0 + 1e-12) and (root >= 0.0 or jj == 0):
+                        root = min(root, length)
                         break
+                if jj == 0:  # no crossing found (only by rounding): continue straight back
+                    root = float((p_cur - self.vertices[0]) @ self.directions[0]) - spacing
+                    break
                 jj -= 1
             p_cur = self.vertices[jj] + root * self.directions[jj]
             s_cur = float(self.arc[jj]) + root
