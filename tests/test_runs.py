@@ -1,0 +1,145 @@
+"""Whole runs of the shipped scenes with the real FMUs: determinism, hosting equivalence, the main
+job, pacing, and what a killed or interrupted run leaves behind."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestration.master import run_scene
+from orchestration.recording import read_stream
+from orchestration.scene import load_scene
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def built(tissue_fmu, contact_fmu, catheter_fmu):
+    """The shipped scenes use fmus/: build them from this checkout first."""
+    from orchestration.cli import ensure_fmus_built
+
+    ensure_fmus_built(quiet=True)
+
+
+def test_catheter_tube_is_deterministic_and_hosting_independent(built, tmp_path):
+    scene = load_scene("catheter_tube", {"duration": 1.6})
+    outputs = {}
+    for label, hosting in (("a", "in-process"), ("b", "in-process"), ("c", "out-of-process")):
+        summary, _ = run_scene(scene, tmp_path / label, hosting=hosting, progress=False, plots=False)
+        assert summary["status"] == "completed", summary["error"]
+        outputs[label] = {name: (tmp_path / label / name).read_bytes() for name in ("catheter.csv", "contact.csv")}
+    assert outputs["a"] == outputs["b"]
+    assert outputs["a"] == outputs["c"]
+    _, contact = read_stream(tmp_path / "a" / "contact.csv")
+    assert np.max(contact["penetration_depth"]) > 0      # the run really reached the wall
+
+
+def test_tissue_scene_out_of_process_equals_in_process(built, tmp_path):
+    """The 30 Hz tissue steps concurrently with the 1 kHz loop out of process: same numbers."""
+    scene = load_scene("tissue_indentation", {"duration": 0.8})
+    for hosting in ("in-process", "out-of-process"):
+        summary, _ = run_scene(scene, tmp_path / hosting, hosting=hosting, progress=False, plots=False)
+        assert summary["status"] == "completed", summary["error"]
+    for name in ("tissue.csv", "contact.csv"):
+        assert (tmp_path / "in-process" / name).read_bytes() == (tmp_path / "out-of-process" / name).read_bytes()
+    _, contact = read_stream(tmp_path / "in-process" / "contact.csv")
+    assert np.max(contact["penetration_depth"]) > 0
+    frames = sorted((tmp_path / "in-process" / "aaa_wall").glob("*.vtu"))
+    assert len(frames) == 1 + 24 // 3                       # the initial frame, then every 3rd of 24 steps
+
+
+def test_main_job_runs_the_default_scene_and_prints_a_summary(built, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "orchestration", "run", "--duration", "0.2", "--out", str(tmp_path)],
+                          capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "aaa_endovascular" in proc.stdout and "real_time_factor" in proc.stdout
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["simulated_time_s"] == pytest.approx(0.2)
+    assert summary["components"]["tissue"]["steps"] == 6 and summary["components"]["contact"]["steps"] == 200
+    for name in ("tissue.csv", "contact.csv", "catheter.csv", "aaa_wall.pvd", "forces.png", "tissue.png"):
+        assert (tmp_path / name).exists(), name
+
+
+def test_realtime_pacing_counts_missed_deadlines(built, tmp_path):
+    scene = load_scene("virtual_wall", {"duration": 0.3})
+    start = time.perf_counter()
+    summary, _ = run_scene(scene, tmp_path, realtime=True, progress=False, plots=False)
+    assert summary["status"] == "completed"
+    assert summary["wall_time_s"] >= 0.3 * 0.98                   # paced: never ahead of the clock
+    assert time.perf_counter() - start >= 0.3
+    deadlines = summary["deadlines"]
+    assert deadlines["haptic_steps"] == 600                        # device and contact, 300 each
+    assert 0 <= deadlines["missed"] <= deadlines["haptic_steps"]
+
+
+def _start_long_run(out: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "orchestration", "run", "virtual_wall", "--duration", "60",
+                             "--hosting", "out-of-process", "--quiet", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_rows(path: Path, rows: int, timeout: float = 120.0) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if path.exists() and path.read_text().count("\n") > rows:
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"{path} did not reach {rows} rows")
+
+
+def test_a_killed_run_keeps_its_results(built, tmp_path):
+    proc = _start_long_run(tmp_path)
+    try:
+        _wait_for_rows(tmp_path / "contact.csv", 500)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    t, cols = read_stream(tmp_path / "contact.csv")
+    assert len(t) > 500
+    np.testing.assert_allclose(np.diff(t), 0.001, rtol=1e-9)     # complete, consecutive rows
+    assert np.all(np.isfinite(cols["tool_force[0]"]))
+
+
+def test_sigterm_ends_the_run_with_a_summary(built, tmp_path):
+    proc = _start_long_run(tmp_path)
+    try:
+        _wait_for_rows(tmp_path / "contact.csv", 300)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    assert "SIGTERM" in err and "Traceback" not in err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    t, _ = read_stream(tmp_path / "contact.csv")
+    assert t[-1] == pytest.approx(summary["simulated_time_s"], abs=0.002)
+    # no worker left behind
+    time.sleep(0.5)
+    leftover = subprocess.run(["pgrep", "-f", f"fmu-worker-.*{os.getpid()}"], capture_output=True)
+    assert leftover.returncode != 0 or not leftover.stdout.strip()
+
+
+def test_twenty_fresh_processes_run_a_short_scene_and_exit_normally(built, tmp_path):
+    def one(i: int):
+        out = tmp_path / f"run{i}"
+        return subprocess.run([sys.executable, "-m", "orchestration", "run", "catheter_tube", "--duration", "0.05",
+                               "--quiet", "--hosting", "in-process", "--out", str(out)],
+                              capture_output=True, text=True, cwd=REPO, timeout=300)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = list(pool.map(one, range(20)))
+    codes = [r.returncode for r in results]
+    assert codes == [0] * 20, [r.stderr[-500:] for r in results if r.returncode]
