@@ -116,8 +116,6 @@ def _cmd_run(args) -> int:
     if summary["status"] != "completed":
         print(f"error: {summary['error']}\nresults up to the failure are in {out}", file=sys.stderr)
         return EXIT_FAILED
-    if not args.quiet:
-        print(f"results: {out}/ (summary.json, CSV per component, plots, surface .pvd for ParaView)")
     return EXIT_OK
 
 

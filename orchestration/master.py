@@ -182,7 +182,8 @@ class Simulation:
 
     # -- time ------------------------------------------------------------------------------------
     def seconds(self, tick: int) -> float:
-        return float(Fraction(tick, self.base))
+        # int / int is correctly rounded in Python: the same float as float(Fraction(tick, base))
+        return tick / self.base
 
     # -- setup ---------------------------------------------------------------------------------
     def _make_host(self, spec: ComponentSpec):
@@ -452,7 +453,7 @@ class Simulation:
     def run(self) -> dict:
         from tqdm import tqdm
 
-        from .recording import format_summary, write_summary
+        from .recording import write_summary
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
         status, error = "completed", None
@@ -491,8 +492,48 @@ class Simulation:
             except Exception as exc:  # plots are a convenience: never lose the summary over them
                 logger.warning("plots failed: %s", exc)
         write_summary(self.out_dir, summary)
-        self.summary_text = format_summary(summary)
+        self.summary_text = self.format(summary)
         return summary
+
+    def _unit(self, ref: str) -> str:
+        comp, port = ref.split(".")
+        unit = self.scene.components[comp].ports[port].unit
+        return f" {unit}" if unit else ""
+
+    def format(self, summary: dict) -> str:
+        """The readable summary printed after a run (summary.json has everything)."""
+        lines = []
+        rtf = summary["real_time_factor"]
+        head = (f"{summary['scene']}: {summary['status']}, {summary['simulated_time_s']:.4g} s simulated in "
+                f"{summary['wall_time_s']:.3g} s")
+        if rtf:
+            head += f" (real-time factor {rtf:.2f}, {summary['hosting']}; setup {summary['setup_time_s']:.1f} s)"
+        lines.append(head)
+        if summary["error"]:
+            lines.append(f"  error: {summary['error']}")
+        for name, comp in summary["components"].items():
+            lines.append(f"  {name:10s} {comp['rate_hz']:8.6g} Hz  {comp['steps']:7d} steps  busy {comp['busy_wall_s']:6.2f} s")
+        for ref, peak in summary.get("peaks", {}).items():
+            lines.append(f"  peak {ref:32s} {peak['value']:.4g}{self._unit(ref)} at {peak['time_s']:.3f} s")
+        for ref, e in summary.get("energy", {}).items():
+            unit = self._unit(ref)
+            lines.append(f"  energy {ref:30s} final {e['final']:.4g}{unit}, range [{e['min']:.4g}, {e['max']:.4g}]{unit}, "
+                         f"drift {e['drift']:.4g}{unit}")
+        for ref, w in summary.get("operator_warnings", {}).items():
+            first = f", first at {w['first_s']:.3f} s" if w["first_s"] is not None else ""
+            lines.append(f"  warning {ref:29s} raised {w['count']} time(s), on for {w['time_on_s']:.3f} s{first}")
+        if "deadlines" in summary:
+            d = summary["deadlines"]
+            lines.append(f"  haptic deadlines missed: {d['missed']} of {d['haptic_steps']} "
+                         f"(worst {1e3 * d['worst_lateness_s']:.2f} ms late)")
+        messages = summary.get("fmu_messages", [])
+        errors = [m for m in messages if m["status"] in ("error", "fatal")]
+        lines.append(f"  FMU messages: {len(messages)} ({len(errors)} errors)" if messages else "  FMU messages: none")
+        for m in messages[:5]:
+            lines.append(f"    {m['component']} [{m['status']}] {m['message'][:200]}")
+        lines.append(f"  results in {summary['results']['folder']}/: summary.json, a CSV per component, "
+                     "PNG plots, surfaces as .pvd (ParaView)")
+        return "\n".join(lines)
 
     def _teardown(self) -> list[dict]:
         messages = []

@@ -1,0 +1,114 @@
+"""Orchestrator cost on the default AAA scene, measured side by side in one run.
+
+1. Overhead: the same three models (TissueModel at 30 Hz, CatheterModel and ContactModel at
+   1 kHz, forces averaged over each tissue step, tissue frames held) stepped by a plain Python
+   loop, against the orchestrated in-process run of ``aaa_endovascular`` (FMI calls through the
+   FMUs, the master's transitions, recording). Overhead = (orchestrated - direct) / orchestrated;
+   target <= 10 % of the total wall time.
+2. Hosting: the scene in-process and out-of-process (one worker per FMU, the 30 Hz tissue step
+   concurrent with the 1 kHz loop); real-time factors and their ratio. Target: out-of-process
+   faster, real-time factor >= 3.
+
+Run: ``.venv/bin/python benchmarks/bench_orchestrator.py [--duration 4]``. The machine is noisy:
+compare the ratios, not the absolute times.
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def operator_insertion(t: float) -> float:
+    """The scene's piecewise-linear insertion profile (scenes/aaa_endovascular.toml)."""
+    return float(np.interp(t, [0.0, 0.2, 2.5, 4.0], [0.07, 0.07, 0.084, 0.084]))
+
+
+def direct_loop(duration: float) -> float:
+    """The scene's models stepped directly in Python (no FMI, no master); returns wall seconds."""
+    from catheter_fmu.model import CatheterModel, CatheterParameters
+    from haptic_fmu.model import ContactModel, ContactParameters
+    from tissue_fmu.mesh import aaa_mesh
+    from tissue_fmu.model import TissueModel, TissueParameters
+
+    tissue = TissueModel(aaa_mesh(), TissueParameters(law="etmm", integrator="implicit", viscosity=50.0))
+    centerline = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.04, 0.022, 0.0, 0.065]).reshape(-1, 3)
+    params = CatheterParameters(n_segments=30, centerline=centerline, controller_mode="regulate", force_threshold=0.5)
+    catheter = CatheterModel(params, dt=0.001)
+    catheter.reset(operator_insertion(0.0), 0.0)
+    contact = ContactModel(tissue.surface_triangles, tissue.n_surface, 31,
+                           ContactParameters(tool="centerline", stiffness=200.0, damping=0.1, local_model="extrapolate"))
+    contact.set_tissue_frame(0.0, tissue.surface_positions(), tissue.surface_velocities())
+    n_fast = int(round(duration * 1000))
+    tip_force = np.zeros(3)
+    force_sum = np.zeros((tissue.n_surface, 3))
+    samples = 0
+    frame = 0
+    start = time.perf_counter()
+    for k in range(n_fast):
+        t = k / 1000
+        if k * 30 >= frame * 1000:  # a tissue step starts at frame / 30 s
+            if frame:  # the previous step's result becomes the contact's frame now (jacobi, hold)
+                contact.set_tissue_frame(frame / 30, *pending)
+            if samples:
+                tissue.set_contact_force(force_sum / samples)
+            tissue.step(frame / 30, 1 / 30)
+            pending = (tissue.surface_positions().copy(), tissue.surface_velocities().copy())
+            force_sum[:] = 0.0
+            samples = 0
+            frame += 1
+        out = catheter.step(t, 0.001, operator_insertion(t + 0.001), 0.0, tip_force)
+        contact_out = contact.step(t, 0.001, out.centerline_positions.reshape(-1, 3))
+        tip_force = contact_out.tip_force.copy()
+        force_sum += contact_out.tissue_contact_force
+        samples += 1
+    return time.perf_counter() - start
+
+
+def orchestrated(duration: float, hosting: str) -> dict:
+    from orchestration.master import run_scene
+    from orchestration.scene import load_scene
+
+    scene = load_scene("aaa_endovascular", {"duration": duration})
+    with tempfile.TemporaryDirectory() as tmp:
+        summary, _ = run_scene(scene, Path(tmp), hosting=hosting, progress=False, plots=False, vtu=False)
+    if summary["status"] != "completed":
+        raise SystemExit(f"{hosting} run failed: {summary['error']}")
+    return summary
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--duration", type=float, default=4.0, help="simulated seconds per run (default 4)")
+    args = parser.parse_args()
+    # The models are imported before any FMU is loaded: an FMU's resources folder on sys.path
+    # would otherwise shadow the packages (pythonfmu3 adds it).
+    import catheter_fmu.model  # noqa: F401
+    import haptic_fmu.model  # noqa: F401
+    import tissue_fmu.model  # noqa: F401
+    from orchestration.cli import ensure_fmus_built
+
+    ensure_fmus_built(quiet=True)
+    orchestrated(0.1, "in-process")  # warm the numba cache and the FMU extraction path
+    direct = direct_loop(args.duration)
+    inproc = orchestrated(args.duration, "in-process")
+    outproc = orchestrated(args.duration, "out-of-process")
+    overhead = (inproc["wall_time_s"] - direct) / inproc["wall_time_s"]
+    print(f"default scene, {args.duration:g} s simulated")
+    print(f"  direct model loop (no FMI, no master)   wall {direct:7.2f} s   real-time factor {args.duration / direct:5.2f}")
+    print(f"  orchestrated in-process                 wall {inproc['wall_time_s']:7.2f} s   real-time factor "
+          f"{inproc['real_time_factor']:5.2f}")
+    print(f"  orchestrated out-of-process             wall {outproc['wall_time_s']:7.2f} s   real-time factor "
+          f"{outproc['real_time_factor']:5.2f}")
+    print(f"  orchestration overhead (FMI + master) = {100 * overhead:5.1f} % of the in-process wall time (target <= 10 %)")
+    print(f"  out-of-process / in-process speed     = {inproc['wall_time_s'] / outproc['wall_time_s']:5.2f}x "
+          "(target > 1)")
+    for name, comp in outproc["components"].items():
+        print(f"    out-of-process {name:9s} busy {comp['busy_wall_s']:6.2f} s over {comp['steps']} steps")
+
+
+if __name__ == "__main__":
+    main()
