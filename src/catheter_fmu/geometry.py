@@ -21,6 +21,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from . import kernels
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["CenterlineError", "CenterlineCurve", "AAA_CENTERLINE_LENGTH"]
@@ -65,7 +67,7 @@ class CenterlineCurve:
 
     def __init__(self, points) -> None:
         try:
-            pts = np.array(points, dtype=np.float64)
+            pts = np.array(points, dtype=np.float64, order="C")
         except (TypeError, ValueError):
             raise CenterlineError(
                 f"centerline must be a (k, 3) array of vertices in m (got {type(points).__name__}):"
@@ -155,8 +157,7 @@ class CenterlineCurve:
 
     def segment_index(self, s: float) -> int:
         """Index of the polyline segment holding arc length s (end segments extend to infinity)."""
-        i = int(np.searchsorted(self.arc, s, side="right")) - 1
-        return min(max(i, 0), self.directions.shape[0] - 1)
+        return kernels.segment_index(self.arc, float(s))
 
     def points(self, s) -> np.ndarray:
         """Positions (m, 3) at arc lengths s (array-like); beyond the ends, straight extensions."""
@@ -165,69 +166,27 @@ class CenterlineCurve:
         return self.vertices[idx] + (s - self.arc[idx])[..., None] * self.directions[idx]
 
     def point(self, s: float) -> np.ndarray:
-        i = self.segment_index(s)
-        return self.vertices[i] + (s - self.arc[i]) * self.directions[i]
+        out = np.empty(3)
+        kernels.point(self.vertices, self.directions, self.arc, float(s), out)
+        return out
 
     def frame(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Smoothed unit tangent t and the parallel-transported normals (e1, e2) at arc length s."""
-        i = self.segment_index(s)
-        w = (s - self.arc[i]) / self.segment_lengths[i]
-        w = min(max(w, 0.0), 1.0)
-        t = (1.0 - w) * self.vertex_tangents[i] + w * self.vertex_tangents[i + 1]
-        t /= math.sqrt(float(t @ t))
-        e1 = _rotate_min(self.vertex_normals[i], self.vertex_tangents[i], t)
-        e1 -= (e1 @ t) * t
-        e1 /= math.sqrt(float(e1 @ e1))
-        return t, e1, _cross(t, e1)
+        out = np.empty((3, 3))
+        kernels.frame(self.arc, self.segment_lengths, self.vertex_tangents, self.vertex_normals, float(s), out, 0)
+        return out[0], out[1], out[2]
 
     def chain_back(self, s_start: float, n_points: int, spacing: float) -> np.ndarray:
         """Points (n_points, 3) on the curve walking back from c(s_start), each exactly
         ``spacing`` (Euclidean) from the previous one.
 
         Inside one straight segment the chord equals the arc step, so runs of points are placed
-        in one vectorised call; only where the chain crosses a vertex is a sphere-segment
-        intersection solved (first crossing going backward, which is continuous in s_start).
+        directly; only where the chain crosses a vertex is a sphere-segment intersection solved
+        (first crossing going backward, which is continuous in s_start). A root landing exactly
+        on a vertex is clamped to it (see ``kernels.chain_back``).
         """
-        out = np.empty((n_points, 3))
-        s_cur = float(s_start)
-        j = self.segment_index(s_cur)
-        p_cur = self.vertices[j] + (s_cur - self.arc[j]) * self.directions[j]
-        k = 0
-        steps = spacing * np.arange(1, n_points + 1, dtype=np.float64)
-        while k < n_points:
-            cand = s_cur - steps[: n_points - k]
-            m = cand.size if j == 0 else int(np.count_nonzero(cand >= self.arc[j]))
-            if m:
-                out[k : k + m] = self.vertices[j] + (cand[:m] - self.arc[j])[:, None] * self.directions[j]
-                k += m
-                s_cur = float(cand[m - 1])
-                p_cur = out[k - 1]
-                if k == n_points:
-                    break
-            # The next point lies behind vertex j: intersect the sphere |x - p_cur| = spacing
-            # with earlier segments; take the root nearest the current point along the curve.
-            # A root at the far end of a segment (the sphere passes through its vertex) may come
-            # out a rounding above the segment length: accept it there, clamped, rather than
-            # searching on past segment 0.
-            jj = j - 1
-            while True:
-                rel = self.vertices[jj] - p_cur
-                b = float(self.directions[jj] @ rel)
-                c = float(rel @ rel) - spacing * spacing
-                disc = b * b - c
-                if disc >= 0.0:
-                    root = -b - math.sqrt(disc)
-                    length = float(self.segment_lengths[jj])
-                    if root <= length * (1.0 + 1e-12) and (root >= 0.0 or jj == 0):
-                        root = min(root, length)
-                        break
-                if jj == 0:  # no crossing found (only by rounding): continue straight back
-                    root = float((p_cur - self.vertices[0]) @ self.directions[0]) - spacing
-                    break
-                jj -= 1
-            p_cur = self.vertices[jj] + root * self.directions[jj]
-            s_cur = float(self.arc[jj]) + root
-            out[k] = p_cur
-            k += 1
-            j = jj
+        out = np.empty((int(n_points), 3))
+        kernels.chain_back(
+            self.vertices, self.directions, self.arc, self.segment_lengths, float(s_start), float(spacing), out
+        )
         return out

@@ -25,10 +25,10 @@ tangent are continuous in ``s`` and the parallel-transported frame is continuous
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 
+from . import kernels
 from .geometry import CenterlineCurve
 
 logger = logging.getLogger(__name__)
@@ -49,40 +49,59 @@ class CatheterKinematics:
         self.n_active = int(n_active)
         self.active_length = self.n_active * self.segment_length
         self.positions = np.zeros((self.n_segments + 1, 3))
+        # Rows (base point, t, e1, e2) of the latest ``fill_base_frame``.
+        self.frame = np.zeros((4, 3))
         # Link angles (j - 1/2) / n_active in units of the total bend angle.
         self._link_fraction = (np.arange(1, self.n_active + 1) - 0.5) / self.n_active
+        # Kernel arguments looked up once (attribute lookups add up at 1 kHz).
+        self._polyline = (curve.vertices, curve.directions, curve.arc, curve.segment_lengths)
+        self._frame_data = self._polyline + (curve.vertex_tangents, curve.vertex_normals)
+
+    def fill_base_frame(self, insertion: float) -> np.ndarray:
+        """Fill and return ``self.frame`` (4, 3): rows (base point, t, e1, e2) for this insertion (m).
+
+        The buffer is reused by the next call; ``base_frame`` returns fresh arrays.
+        """
+        kernels.base_frame(*self._frame_data, insertion - self.active_length, self.frame)
+        return self.frame
+
+    def fill_shape(self, insertion: float, b1: float, b2: float, frame: np.ndarray) -> np.ndarray:
+        """Fill and return ``self.positions`` from a (4, 3) frame array (``fill_base_frame``) and
+        the bend vector (b1, b2) (rad)."""
+        kernels.catheter_shape(
+            *self._polyline,
+            frame,
+            insertion - self.active_length,
+            b1,
+            b2,
+            self._link_fraction,
+            self.segment_length,
+            self.positions,
+        )
+        return self.positions
 
     def base_frame(self, insertion: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(base point, tangent t, e1, e2) of the active section for this insertion."""
-        s_b = insertion - self.active_length
-        t, e1, e2 = self.curve.frame(s_b)
-        return self.curve.point(s_b), t, e1, e2
+        out = np.empty((4, 3))
+        kernels.base_frame(*self._frame_data, float(insertion) - self.active_length, out)
+        return out[0], out[1], out[2], out[3]
 
     def active_chain(
         self, base: np.ndarray, t: np.ndarray, e1: np.ndarray, e2: np.ndarray, bend_vector: tuple[float, float]
     ) -> np.ndarray:
         """Joints (n_active, 3) after the base for bend vector (b1, b2) in the (e1, e2) frame (rad)."""
         b1, b2 = bend_vector
-        beta = math.hypot(b1, b2)
-        if beta > 0.0:
-            d = (b1 * e1 + b2 * e2) / beta
-        else:
-            d = e1
-        ang = beta * self._link_fraction
-        links = np.cos(ang)[:, None] * t + np.sin(ang)[:, None] * d
-        return base + self.segment_length * np.cumsum(links, axis=0)
+        frame = np.array([base, t, e1, e2], dtype=np.float64)
+        out = np.empty((self.n_active, 3))
+        kernels.active_chain(frame, float(b1), float(b2), self._link_fraction, self.segment_length, out)
+        return out
 
     def shape(self, insertion: float, bend_vector: tuple[float, float], frame=None) -> np.ndarray:
         """Fill and return ``self.positions`` for this insertion (m) and bend vector (rad).
 
         ``frame`` may pass a precomputed ``base_frame(insertion)`` to avoid recomputing it.
         """
-        base, t, e1, e2 = self.base_frame(insertion) if frame is None else frame
-        n_prox = self.n_segments - self.n_active
-        pos = self.positions
-        if n_prox:
-            s_b = insertion - self.active_length
-            pos[n_prox - 1 :: -1] = self.curve.chain_back(s_b, n_prox, self.segment_length)
-        pos[n_prox] = base
-        pos[n_prox + 1 :] = self.active_chain(base, t, e1, e2, bend_vector)
-        return pos
+        insertion = float(insertion)
+        frame = self.fill_base_frame(insertion) if frame is None else np.array(frame, dtype=np.float64)
+        b1, b2 = bend_vector
+        return self.fill_shape(insertion, float(b1), float(b2), frame)

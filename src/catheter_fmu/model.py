@@ -61,6 +61,8 @@ class CatheterParameterError(ValueError):
 
 
 def _number(name: str, value, example: str) -> float:
+    if type(value) is float and math.isfinite(value):  # the 1 kHz common case, checked cheaply
+        return value
     if isinstance(value, (bool, np.bool_)):
         raise CatheterParameterError(f"{name} must be a number (got {value!r}): e.g. {example}")
     try:
@@ -271,7 +273,7 @@ class CatheterModel:
         self.monitor.warning = False
         self.passive_bend = np.zeros(2)
         self.time = 0.0
-        self._outputs_from(insertion, rotation, command=0.0, force_magnitude=0.0, frame=None)
+        self._outputs_from(insertion, rotation, 0.0, 0.0, self.kinematics.fill_base_frame(insertion))
         return self.outputs
 
     def set_mode(self, mode: str) -> None:
@@ -333,16 +335,18 @@ class CatheterModel:
         force = np.asarray(tip_force, dtype=np.float64)
         if force.shape != (3,):
             raise CatheterParameterError(f"tip_force must have 3 components (N) (got shape {force.shape})")
-        if not (math.isfinite(force[0]) and math.isfinite(force[1]) and math.isfinite(force[2])):
+        # Plain floats from here on: numpy calls on 3-vectors cost about 1 us each.
+        fx, fy, fz = force.tolist()
+        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
             raise CatheterParameterError(
                 f"tip_force must be finite (got {force.tolist()}): check the contact component's output"
             )
 
-        frame = self.kinematics.base_frame(insertion)
-        e1, e2 = frame[2], frame[3]
-        f1 = float(force @ e1)
-        f2 = float(force @ e2)
-        force_magnitude = math.sqrt(float(force @ force))
+        frame = self.kinematics.fill_base_frame(insertion)
+        _, _, (e10, e11, e12), (e20, e21, e22) = frame.tolist()
+        f1 = fx * e10 + fy * e11 + fz * e12
+        f2 = fx * e20 + fy * e21 + fz * e22
+        force_magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
         cos_r, sin_r = math.cos(rotation), math.sin(rotation)
 
         if self.mode == "regulate":
@@ -361,25 +365,28 @@ class CatheterModel:
         tau = self.params.passive_time_constant
         keep = math.exp(-dt / tau) if tau > 0.0 else 0.0
         pb = self.passive_bend
-        pb[0] = target1 + (pb[0] - target1) * keep
-        pb[1] = target2 + (pb[1] - target2) * keep
+        p1, p2 = pb.tolist()
+        pb[0] = target1 + (p1 - target1) * keep
+        pb[1] = target2 + (p2 - target2) * keep
 
         self.time = float(t) + dt
         self._outputs_from(insertion, rotation, command, force_magnitude, frame, cos_r, sin_r)
         return self.outputs
 
     def _outputs_from(self, insertion, rotation, command, force_magnitude, frame, cos_r=None, sin_r=None) -> None:
+        """Shape and outputs; ``frame`` is the (4, 3) base frame array of this insertion."""
         if cos_r is None:
             cos_r, sin_r = math.cos(rotation), math.sin(rotation)
         angle = self.actuator.angle
-        b1 = angle * cos_r + self.passive_bend[0]
-        b2 = angle * sin_r + self.passive_bend[1]
+        p1, p2 = self.passive_bend.tolist()
+        b1 = angle * cos_r + p1
+        b2 = angle * sin_r + p2
         total = math.hypot(b1, b2)
         if total > MAX_TOTAL_BEND:
             # Beyond a half turn the small-deflection passive model means nothing (forces of
             # several N on the tip); fold no further than a U-turn.
             b1, b2 = b1 * MAX_TOTAL_BEND / total, b2 * MAX_TOTAL_BEND / total
-        pos = self.kinematics.shape(insertion, (b1, b2), frame)
+        pos = self.kinematics.fill_shape(insertion, b1, b2, frame)
         warning, scale = self.monitor.update(force_magnitude)
         self.outputs = CatheterOutputs(
             centerline_positions=pos.reshape(-1).copy(),
