@@ -132,6 +132,8 @@ class Source:
     name: str
     ports: dict[str, PortInfo]
     continuous = True
+    #: the outputs never change: the master sets them once, at initialization
+    constant = False
 
     def evaluate(self, t: float) -> dict[str, np.ndarray]:  # pragma: no cover - interface
         raise NotImplementedError
@@ -474,6 +476,8 @@ class RigidSurfaceSource(Source):
     Orientation contract of the Contact FMU: triangle normals (right-hand rule) point to the side
     where the tool is allowed: along ``normal`` for a plane, towards the axis for a tube.
     """
+
+    constant = True
 
     def __init__(self, name: str, shape: str = "plane", **options):
         problems: list[str] = []

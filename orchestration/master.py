@@ -179,6 +179,7 @@ class Simulation:
         self.worst_lateness = 0.0
         self.deadline_steps = 0
         self._stop_reason: str | None = None
+        self._source_cache: dict[str, tuple[int, dict]] = {}
 
     # -- time ------------------------------------------------------------------------------------
     def seconds(self, tick: int) -> float:
@@ -280,7 +281,7 @@ class Simulation:
                     continue
                 producer = inp.producer
                 if producer is None:
-                    value = inp.source.evaluate(0.0)[inp.spec.source_port]
+                    value = self._evaluate(inp.source, 0)[inp.spec.source_port]
                 elif producer.name in done:
                     value = _call(producer, "get values", 0.0,
                                   lambda p=producer, i=inp: p.host.get_values([i.spec.source_port]))[inp.spec.source_port]
@@ -317,7 +318,9 @@ class Simulation:
             tau = t + (0 if initial else inp.need_offset)
             key = None
             if inp.source is not None:
-                value = inp.source.evaluate(self.seconds(tau))[inp.spec.source_port]
+                if inp.last_value is not None and inp.source.constant:
+                    continue
+                value = self._evaluate(inp.source, tau)[inp.spec.source_port]
             else:
                 if initial and inp.producer.name not in (done or ()):
                     continue  # producer not initialized yet (a loop): the start value stands
@@ -343,6 +346,15 @@ class Simulation:
                 inp.last_value = value
             values[inp.port] = value
         return values
+
+    def _evaluate(self, source, tau: int) -> dict[str, np.ndarray]:
+        """A source's outputs at tick ``tau``, evaluated once per tick for all its connections."""
+        cached = self._source_cache.get(source.name)
+        if cached is not None and cached[0] == tau:
+            return cached[1]
+        outputs = source.evaluate(self.seconds(tau))
+        self._source_cache[source.name] = (tau, outputs)
+        return outputs
 
     def _store(self, comp: _Component, tick: int, outputs: dict[str, np.ndarray]) -> None:
         self.final_outputs[comp.name] = outputs
