@@ -45,6 +45,9 @@ from .penalty import PENALTY_LAWS, law_code
 
 logger = logging.getLogger(__name__)
 
+#: Energy (J) below which the active-contact warning stays silent (noise, one-sample transients).
+ACTIVE_ENERGY_FLOOR = 1e-3
+
 DETECTIONS = ("continuous", "discrete")
 INTERPOLATIONS = ("linear", "cubic")
 TOOLS = ("centerline", "probe")
@@ -216,6 +219,9 @@ class ContactModel:
         self._frame_vel = None
         # tool state
         self._tool_prev = None          # tool positions at the last step
+        self._tunnel_warned = False     # the discrete-detection tunnelling warning is given once
+        self._peak_potential = 0.0      # largest penalty energy held so far (J)
+        self._active_warned = False     # the active-contact warning is given once
         self._tool_at_frame = None      # tool positions when the last frame arrived
         self._built_at = None           # tool positions when the local model was last queried
         self._inside = np.zeros(self.n_tool, np.int8)
@@ -348,6 +354,17 @@ class ContactModel:
         else:
             tool_vel = _float_array("tool_velocities", tool_velocities, self.n_tool,
                                     "give the tool point velocities in m/s, or None to difference positions")
+        if self.params.detection == "discrete" and not self._tunnel_warned:
+            # Discrete detection sees only where the tool is at each sample: a tool that moves
+            # farther than the margin in one step can pass through a thin wall unseen (measured by
+            # the extremes study: a probe at 10 m/s crossed the 1.5 mm AAA wall without a contact).
+            jump = kernels.max_displacement(tool1, tool0)
+            if jump > self.params.margin:
+                self._tunnel_warned = True
+                logger.warning(
+                    "the tool moved %.3g mm in one %.3g ms step (t = %.6g s), more than the margin %.3g mm: with "
+                    "detection = 'discrete' a contact can be missed (tunnelling); use detection = 'continuous'",
+                    1e3 * jump, 1e3 * dt, t, 1e3 * self.params.margin)
         if self._built_at is None or kernels.max_displacement(tool1, self._built_at) > 0.5 * self.params.margin:
             self._refresh_local(tool0, tool1)
         if self._tool_at_frame is None:
@@ -379,12 +396,34 @@ class ContactModel:
         self._renderer.period = float(dt)
         node_force = self._renderer.render(tool1, tool_vel, self._node_force)
         self._node_force[:] = node_force
+        self._warn_if_active(float(energy), t)
         self._tool_prev = tool1.copy()
         return ContactOutputs(
             tool_force=node_force.sum(axis=0), tip_force=node_force[-1].copy(),
             tissue_contact_force=self._tissue_force, node_forces=self._node_force,
             penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
             passivity_energy=self._renderer.energy)
+
+    def _warn_if_active(self, potential: float, t: float) -> None:
+        """Warn once when the contact has given back more energy than it ever stored.
+
+        The observer's energy alone is no verdict: a sampled penalty wall always creates some
+        energy (about K T / 2 v^2 per unit time) that the device's own damping is meant to take
+        out, which the contact model does not know. A wall that has returned more than the largest
+        penalty energy it ever held is active whatever the device (measured by the extremes study:
+        0.375 J created against 0.09 J stored at 20 kN/m; 0.03 J against 0.06 J at a passive
+        800 N/m with b_dev = 1 N s/m).
+        """
+        self._peak_potential = max(self._peak_potential, potential)
+        created = -self._renderer.energy
+        if created > max(self._peak_potential, ACTIVE_ENERGY_FLOOR) and not self._active_warned:
+            self._active_warned = True
+            logger.warning(
+                "passivity observer: the contact has created %.3g J by t = %.6g s, more than the %.3g J it ever "
+                "stored: the rendered contact is active (a sampled-data instability); lower stiffness or damping, "
+                "raise the device damping (passive while b_dev > K T / 2 + |B|)%s",
+                created, t, self._peak_potential,
+                "" if self.params.passivity_controller else ", or set passivity_controller = true")
 
     # ------------------------------------------------------------------ state (FMU rollback)
     _STATELESS = ("aabb", "ccd", "tree", "triangles", "params", "n_surface", "n_tool", "radius",

@@ -28,6 +28,7 @@ import numpy as np
 from . import kernels
 
 
+
 class PassivityError(ValueError):
     """Invalid input to the passivity observer/controller."""
 
