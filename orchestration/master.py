@@ -158,7 +158,8 @@ class Simulation:
                  plots: bool = True, vtu: bool = True, observe: dict[str, list[str]] | None = None):
         self.scene = scene
         self.out_dir = Path(out_dir)
-        self.hosting = hosting or scene.hosting
+        #: forced for every FMU (the command line's --hosting), else each FMU's own or the scene's
+        self.forced_hosting = hosting
         self.realtime = scene.realtime if realtime is None else realtime
         self.progress = progress
         self.duration = Fraction(repr(float(duration))) if isinstance(duration, float) else (
@@ -187,10 +188,25 @@ class Simulation:
         return tick / self.base
 
     # -- setup ---------------------------------------------------------------------------------
+    def hosting_of(self, spec: ComponentSpec) -> str:
+        if not spec.is_fmu:
+            return "in-process"
+        return self.forced_hosting or spec.hosting or self.scene.hosting
+
+    @property
+    def hosting(self) -> str:
+        """"in-process", "out-of-process", or "mixed (out-of-process: a, b)"."""
+        fmus = [c for c in self.scene.components.values() if c.is_fmu]
+        kinds = {self.hosting_of(c) for c in fmus}
+        if len(kinds) <= 1:
+            return kinds.pop() if kinds else "in-process"
+        workers = [c.name for c in fmus if self.hosting_of(c) == "out-of-process"]
+        return f"mixed (out-of-process: {', '.join(workers)})"
+
     def _make_host(self, spec: ComponentSpec):
         if not spec.is_fmu:
             return spec.block
-        if self.hosting == "in-process":
+        if self.hosting_of(spec) == "in-process":
             from .hosting import InProcessFmu
 
             return InProcessFmu(spec.name, spec.description)
@@ -429,7 +445,7 @@ class Simulation:
 
         comps = sorted(self.components.values(), key=lambda c: c.rank)
         lookahead = 2 * max(c.step for c in comps)
-        concurrent = self.hosting == "out-of-process"
+        concurrent = any(c.host.wait_handle() is not None for c in comps)
         shown = 0
         while True:
             if self._stop_reason:
@@ -580,7 +596,7 @@ class Simulation:
             "real_time_factor": simulated / wall if wall > 0 else None,
             "components": {
                 c.name: {"step_s": self.seconds(c.step), "rate_hz": self.base / c.step, "steps": c.steps,
-                         "busy_wall_s": c.busy}
+                         "busy_wall_s": c.busy, "hosting": self.hosting_of(c.spec)}
                 for c in sorted(self.components.values(), key=lambda c: c.rank)
             },
             **self.stats.report(),

@@ -38,7 +38,7 @@ ORDERINGS = ("gauss-seidel", "jacobi")
 HOSTINGS = ("in-process", "out-of-process")
 
 _SCENE_KEYS = {"name", "description", "duration", "hosting", "realtime", "start_time"}
-_FMU_KEYS = {"path", "step", "parameters"}
+_FMU_KEYS = {"path", "step", "parameters", "hosting"}
 _CONNECTION_KEYS = {"from", "to", "transition", "ordering"}
 _SUMMARY_KEYS = {"peaks", "energy", "warnings", "deadlines"}
 _SURFACE_KEYS = {"component", "positions", "triangles", "every", "point_data", "name"}
@@ -68,6 +68,7 @@ class ComponentSpec:
     ports: dict[str, PortInfo] = field(default_factory=dict)
     description: FmuDescription | None = None
     block: object = None                        # blocks: the constructed block (sources are stateless)
+    hosting: str | None = None                  # FMUs: "in-process" | "out-of-process" (None: the scene's)
 
     @property
     def is_fmu(self) -> bool:
@@ -313,8 +314,11 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             problems.append(f"{where} step: this FMU's communication step is fixed at {description.default_step} s "
                             f"and it has no communication_step parameter; use step = {description.default_step}")
         _check_parameters(where, parameters, ports, problems)
+        hosting = table.get("hosting")
+        if hosting is not None and hosting not in HOSTINGS:
+            problems.append(f"{where} hosting: {hosting!r} is not one of {', '.join(HOSTINGS)}")
         components[name] = ComponentSpec(name=name, kind="fmu", step=step, parameters=parameters, path=fmu_path,
-                                         ports=ports, description=description)
+                                         ports=ports, description=description, hosting=hosting)
 
 
 def _check_parameters(where: str, parameters: dict, ports: dict[str, PortInfo], problems: list[str]) -> None:

@@ -168,7 +168,11 @@ class GuardedSlaveMixin:
         self._initialized = False
         handler = _FmuLogHandler(self)
         for name in self.forwarded_loggers:
-            logging.getLogger(name).addHandler(handler)
+            package_logger = logging.getLogger(name)
+            package_logger.addHandler(handler)
+            # The messages reach the importer through the FMI log callback; a Python importer in
+            # the same interpreter would otherwise print them a second time from its root logger.
+            package_logger.propagate = False
         self._log_handler = handler
 
     # -- error bookkeeping -------------------------------------------------------------------

@@ -60,7 +60,8 @@ def test_main_job_runs_the_default_scene_and_prints_a_summary(built, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "orchestration", "run", "--duration", "0.2", "--out", str(tmp_path)],
                           capture_output=True, text=True, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stderr
-    assert "aaa_endovascular" in proc.stdout and "real_time_factor" in proc.stdout
+    assert "aaa_endovascular: completed" in proc.stdout and "real-time factor" in proc.stdout
+    assert "peak contact.tool_force" in proc.stdout and "results in" in proc.stdout
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["status"] == "completed" and summary["simulated_time_s"] == pytest.approx(0.2)
     assert summary["components"]["tissue"]["steps"] == 6 and summary["components"]["contact"]["steps"] == 200

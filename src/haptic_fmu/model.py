@@ -45,8 +45,9 @@ from .penalty import PENALTY_LAWS, law_code
 
 logger = logging.getLogger(__name__)
 
-#: Energy (J) below which the active-contact warning stays silent (noise, one-sample transients).
-ACTIVE_ENERGY_FLOOR = 1e-3
+#: Energy (J) below which the active-contact warning stays silent (noise, one-sample transients,
+#: a moving tissue surface: the AAA scene creates about 1 mJ).
+ACTIVE_ENERGY_FLOOR = 0.01
 
 DETECTIONS = ("continuous", "discrete")
 INTERPOLATIONS = ("linear", "cubic")
