@@ -243,6 +243,8 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
         problems.append(f"[scene] realtime: must be true or false (got {realtime!r})")
 
     components: dict[str, ComponentSpec] = {}
+    declared = {name for section in ("fmu", "source", "block") for name in data.get(section, {})
+                if isinstance(data.get(section), dict)}
     _load_fmus(data.get("fmu", {}), base_dir, components, overrides, problems)
     _load_blocks(data.get("source", {}), "source", base_dir, components, overrides, problems)
     _load_blocks(data.get("block", {}), "block", base_dir, components, overrides, problems)
@@ -251,7 +253,7 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     if not components:
         problems.append("the scene has no [fmu.<name>] or [block.<name>]: nothing to simulate")
 
-    connections = _load_connections(data.get("connection", []), components, problems)
+    connections = _load_connections(data.get("connection", []), components, problems, declared)
     _check_algebraic_loops(connections, components, problems)
     record, surfaces, plots = _load_record(data.get("record", {}), components, problems)
     summary = data.get("summary", {})
@@ -375,7 +377,10 @@ def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, o
                                          ports=dict(block.ports), block=block)
 
 
-def _load_connections(items, components: dict[str, ComponentSpec], problems: list[str]) -> list[ConnectionSpec]:
+def _load_connections(items, components: dict[str, ComponentSpec], problems: list[str],
+                      declared: set[str] = frozenset()) -> list[ConnectionSpec]:
+    """Connections; one to a component that is declared but could not be loaded (its problem is
+    reported already) is skipped silently rather than reported again as unknown."""
     if not isinstance(items, list):
         problems.append("connection: write each connection as a [[connection]] table")
         return []
@@ -396,7 +401,9 @@ def _load_connections(items, components: dict[str, ComponentSpec], problems: lis
         for (comp, port), role, allowed in ((src, "from", READABLE), (dst, "to", WRITABLE)):
             spec = components.get(comp)
             if spec is None:
-                problems.append(f"{where}: unknown component {comp!r}; components: {', '.join(components) or 'none'}")
+                if comp not in declared:
+                    problems.append(f"{where}: unknown component {comp!r}; components: "
+                                    f"{', '.join(components) or 'none'}")
                 ok = False
                 continue
             info = spec.ports.get(port)

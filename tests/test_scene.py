@@ -182,3 +182,15 @@ def test_overrides_replace_parameters_and_steps():
     assert float(scene.duration) == 0.5
     with pytest.raises(SceneError, match="no such component parameter"):
         load_scene("tissue_indentation", {"nobody.stiffness": 1.0})
+
+
+def test_model_descriptions_carry_the_real_start_values(fmus):
+    """pythonfmu3's builder reads start values through get_float64, which the slaves answer with
+    packed bytes for the export library: the builder must still get the numbers."""
+    from orchestration.ports import read_fmu
+
+    contact = read_fmu(fmus["Contact"]).ports
+    assert contact["stiffness"].start == 500.0 and contact["communication_step"].start == 0.001
+    assert contact["tool_positions"].start in (0.0, [0.0] * 93)
+    tissue = read_fmu(fmus["Tissue"]).ports
+    assert tissue["young_modulus"].start == 1.044e6 and tissue["poisson_ratio"].start == 0.45

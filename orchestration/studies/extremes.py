@@ -616,6 +616,7 @@ def _findings(by_row: dict) -> list[str]:
     if haptic:
         out.append("- Virtual wall, net work of the wall on the device (J, > 0 = energy created): "
                    + "; ".join(f"{r['row'][7:]} {_fmt(r.get('wall_energy_final_J'))} ({r['outcome']})" for r in haptic)
-                   + ". The passivity observer output (`passivity_energy`) always equals minus that work, but with "
-                   "the controller off nothing is logged.")
+                   + ". The passivity observer output (`passivity_energy`) always equals minus that work; the "
+                   "Contact FMU warns once the contact has returned more energy than it ever stored (an active "
+                   "wall whatever the device), which the sampled wall of a passive loop does not reach.")
     return out
