@@ -118,11 +118,11 @@ class _Statistics:
         for kind, port, ref in self.by_component.get(component, ()):
             value = outputs[port]
             if kind == "peak":
-                magnitude = float(np.linalg.norm(value)) if value.size > 1 else abs(float(value[0]))
+                magnitude = math.sqrt(float(value @ value)) if value.size > 1 else abs(float(value[0]))
                 if magnitude > self.peaks[ref][0]:
                     self.peaks[ref] = (magnitude, t)
             elif kind == "energy":
-                v = float(value[0]) if value.size == 1 else float(np.linalg.norm(value))
+                v = float(value[0]) if value.size == 1 else math.sqrt(float(value @ value))
                 e = self.energy.setdefault(ref, {"initial": v, "final": v, "min": v, "max": v})
                 e["final"] = v
                 e["min"] = min(e["min"], v)
@@ -357,7 +357,8 @@ class Simulation:
                     continue
                 inp.last_key = key
             else:
-                if inp.last_value is not None and np.array_equal(value, inp.last_value):
+                last = inp.last_value
+                if last is not None and (value is last or (value.shape == last.shape and (value == last).all())):
                     continue
                 inp.last_value = value
             values[inp.port] = value
@@ -456,7 +457,8 @@ class Simulation:
             t_min = min(c.time for c in pending)
             candidates = [c for c in pending if not c.running and c.time < self.end
                           and c.time - t_min <= lookahead and self._ready(c)]
-            candidates.sort(key=lambda c: (c.time, c.rank))
+            if len(candidates) > 1:
+                candidates.sort(key=lambda c: (c.time, c.rank))
             if not concurrent and candidates:
                 candidates = candidates[:1]
             for comp in candidates:
