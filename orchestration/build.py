@@ -17,8 +17,9 @@ Two toolchain defects are handled here rather than hidden:
   a host that compiled numba first made it rare. We build the export library from pythonfmu3's
   own sources with one change: ``pyState`` becomes a reference to a heap object that is never
   destroyed, so only ``finalizePythonInterpreter`` releases it, once.
-* Python FMUs in one process share one interpreter, so the entry script of each FMU gets a
-  unique module name (``<model>_<package>_entry``) and imports the package it carries under a unique
+* Python FMUs in one process share one interpreter, so the builder runs in a fresh interpreter
+  (its import of the package must not replace the copy loaded FMUs use), the entry script of
+  each FMU gets a unique module name (``<model>_<package>_entry``) and imports the package it carries under a unique
   name (``<model identifier>_<package>``), never a copy the host imported already.
 """
 from __future__ import annotations
@@ -242,8 +243,6 @@ def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
 
 def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
     """Build the FMU described by ``spec`` (its package must hold ``_fmi_support.py``) into ``dest``."""
-    from pythonfmu3.builder import FmuBuilder
-
     name = spec.model_identifier
     package_dir = Path(spec.source_root) / spec.package
     if not (package_dir / "fmu.py").exists():
@@ -259,21 +258,40 @@ def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
         package_copy = tmp / spec.package
         shutil.copytree(package_dir, package_copy, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc"))
         _add_build_data(spec, package_copy)
-        # The builder imports the entry script (to write modelDescription.xml) in this process:
-        # the package copy is imported under its unique name, dropped again afterwards.
-        unique = f"{spec.model_identifier}_{spec.package}"
-        sys.path.insert(0, str(tmp))
-        try:
-            fmu_path = FmuBuilder.build_FMU(entry, dest=tmp / "out", project_files=[package_copy],
-                                           canHandleVariableCommunicationStepSize=False)
-        finally:
-            sys.path.remove(str(tmp))
-            for key in [k for k in sys.modules if k == unique or k.startswith(unique + ".")]:
-                del sys.modules[key]
+        fmu_path = _run_builder(entry, tmp / "out", package_copy)
         final = dest / fmu_path.name
         _replace_binary(fmu_path, final, library, spec.model_identifier)
     logger.info("built %s", final)
     return final
+
+
+_BUILDER_SCRIPT = """
+import sys
+from pythonfmu3.builder import FmuBuilder
+entry, out, package = sys.argv[1:4]
+sys.path.insert(0, str(__import__("pathlib").Path(entry).parent))
+path = FmuBuilder.build_FMU(entry, dest=out, project_files=[package], canHandleVariableCommunicationStepSize=False)
+print(path)
+"""
+
+
+def _run_builder(entry: Path, out: Path, package_copy: Path) -> Path:
+    """Run pythonfmu3's builder on ``entry`` in a fresh interpreter; return the FMU it wrote.
+
+    The builder imports the entry script (to write modelDescription.xml). In this process that
+    import would replace, under the package's unique name, a copy that FMUs loaded here already
+    use (pythonfmu3 reuses entry modules per process): a build inside a process that had loaded
+    Contact.fmu broke the next Contact instance with "No module named 'Contact_haptic_fmu'".
+    """
+    proc = subprocess.run([sys.executable, "-c", _BUILDER_SCRIPT, str(entry), str(out), str(package_copy)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise BuildError(f"pythonfmu3's builder failed on {entry.name} (exit {proc.returncode}):\n"
+                         f"{proc.stderr[-3000:]}")
+    lines = [line for line in proc.stdout.splitlines() if line.strip()]
+    if not lines or not Path(lines[-1]).is_file():
+        raise BuildError(f"pythonfmu3's builder did not report an FMU for {entry.name}:\n{proc.stdout[-2000:]}")
+    return Path(lines[-1])
 
 
 def _add_build_data(spec: FmuSpec, package_copy: Path) -> None:

@@ -146,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     p_run.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scene's)")
     p_run.add_argument("--out", default=None, help="result folder (default results/<scene>)")
     p_run.add_argument("--hosting", choices=("in-process", "out-of-process"), default=None,
-                       help="where FMUs run (default: the scene's, out-of-process for the shipped scenes)")
+                       help="run every FMU in this process or each in a worker process of its own (default: "
+                            "the scene's choice per FMU; the shipped tissue scenes put the 30 Hz tissue in a worker)")
     p_run.add_argument("--realtime", action="store_true", help="pace to the wall clock and count missed haptic deadlines")
     p_run.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
     p_run.add_argument("--no-vtu", action="store_true", help="do not write the surface time series")

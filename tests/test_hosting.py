@@ -280,3 +280,29 @@ def test_terminate_is_idempotent_and_leaves_nothing(kind, synthetic_fmus):
         assert not unzip_dir.exists()
     with pytest.raises(RuntimeError, match="after terminate"):
         host.get_outputs()
+
+
+def test_building_an_fmu_does_not_break_instances_loaded_in_this_process(contact_fmu, tmp_path):
+    """Regression (fresh-clone CI): a build inside a process that had loaded Contact.fmu replaced
+    the package module the reused entry module refers to, and the next Contact instance failed
+    with "No module named 'Contact_haptic_fmu'". Builds now run in a fresh interpreter."""
+    from orchestration.build import build_fmu
+    from orchestration.hosting import InProcessFmu
+    from orchestration.ports import read_fmu
+
+    def one_instance(path):
+        host = InProcessFmu("contact", read_fmu(path))
+        try:
+            host.instantiate()
+            host.enter_initialization(0.0)
+            host.configure([], ["tool_force"])
+            host.exit_initialization()
+            host.start_step(0.0, 0.001, {})
+            return host.finish_step()["tool_force"]
+        finally:
+            host.terminate()
+
+    np.testing.assert_array_equal(one_instance(contact_fmu), np.zeros(3))
+    rebuilt = build_fmu("Contact", tmp_path)
+    np.testing.assert_array_equal(one_instance(rebuilt), np.zeros(3))
+    np.testing.assert_array_equal(one_instance(contact_fmu), np.zeros(3))
