@@ -266,7 +266,7 @@ class Simulation:
                     raise OrchestrationError(f"observe: {name} has no port {port!r}")
                 _add(self.components[name].observed, port)
 
-        # Hosts: workers start loading their FMUs concurrently.
+        # Hosts, instantiated one after the other (a worker process loads its FMU while the master waits).
         for comp in self.components.values():
             comp.host = self._make_host(comp.spec)
         for comp in self.components.values():

@@ -207,8 +207,12 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_points(tmp_path, 
               "progress=False)\n")
     # In the interrupted run, x=3 (the fifth point) hangs: the interruption finds a worker busy
     # with a long point, which must not survive its sweep.
+    # Ctrl-C must reach the sweep as KeyboardInterrupt even when this test runs with SIGINT ignored
+    # (a background job of a non-interactive shell inherits SIG_IGN, and Python then installs no
+    # handler): give the child the default disposition.
     sweep = subprocess.Popen([sys.executable, "-c", script, json.dumps(points), str(results_path)],
-                             stderr=subprocess.DEVNULL, env={**os.environ, HANG_ENV: "3"})
+                             stderr=subprocess.DEVNULL, env={**os.environ, HANG_ENV: "3"},
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and sweep.poll() is None:
         if results_path.exists() and results_path.read_text().count("\n") >= 4:
