@@ -49,6 +49,7 @@ def direct_loop(duration: float) -> float:
     force_sum = np.zeros((tissue.n_surface, 3))
     samples = 0
     frame = 0
+    pending = None  # the tissue step's result, published at the next frame
     start = time.perf_counter()
     for k in range(n_fast):
         t = k / 1000
