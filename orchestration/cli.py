@@ -160,6 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     p_study.add_argument("--quick", action="store_true", help="a reduced sweep (what the tests run)")
     p_study.add_argument("--workers", type=int, default=None, help="parallel processes (default: CPU count)")
     p_study.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p_study.add_argument("--fresh", action="store_true",
+                         help="run every point again (default: resume, keeping the points finished in --out)")
     p_study.add_argument("--quiet", action="store_true", help="no progress bar")
     p_study.set_defaults(func=_cmd_study)
 

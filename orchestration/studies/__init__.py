@@ -16,12 +16,16 @@ STUDIES = ("tradeoff", "stability", "extremes")
 
 
 def run_study(args) -> int:
-    """CLI entry: ``args`` has name, out, quick, workers, scheduler, quiet."""
+    """CLI entry: ``args`` has name, out, quick, workers, scheduler, fresh, quiet."""
     from ..cli import ensure_fmus_built
 
     ensure_fmus_built(args.quiet)
     module = importlib.import_module(f"{__name__}.{args.name}")
     out = Path(args.out) if args.out else Path("results") / f"study_{args.name}"
+    finished = out / "points.jsonl"
+    if getattr(args, "fresh", False) and finished.exists():
+        # Resuming keys points by their parameters only: after a change to the code, start over.
+        finished.rename(finished.with_suffix(".jsonl.old"))
     try:
         report = module.run(out, quick=args.quick, workers=args.workers, scheduler=args.scheduler,
                             progress=not args.quiet)
