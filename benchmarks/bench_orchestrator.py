@@ -23,11 +23,6 @@ from pathlib import Path
 import numpy as np
 
 
-def operator_insertion(t: float) -> float:
-    """The scene's piecewise-linear insertion profile (scenes/aaa_endovascular.toml)."""
-    return float(np.interp(t, [0.0, 0.2, 2.5, 4.0], [0.07, 0.07, 0.084, 0.084]))
-
-
 def direct_loop(duration: float) -> float:
     """The scene's models stepped directly in Python (no FMI, no master); returns wall seconds."""
     from catheter_fmu.model import CatheterModel, CatheterParameters
@@ -35,14 +30,27 @@ def direct_loop(duration: float) -> float:
     from tissue_fmu.mesh import aaa_mesh
     from tissue_fmu.model import TissueModel, TissueParameters
 
-    tissue = TissueModel(aaa_mesh(), TissueParameters(law="etmm", integrator="implicit", viscosity=50.0,
-                                                      active_region=(0.022, 0.0, 0.065, 0.03)))
-    centerline = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.04, 0.022, 0.0, 0.065]).reshape(-1, 3)
-    params = CatheterParameters(n_segments=30, centerline=centerline, controller_mode="regulate", force_threshold=0.5)
+    from orchestration.scene import load_scene
+
+    # The scene's own settings, so that both sides do the same work.
+    scene = load_scene("aaa_endovascular").components
+    tp, cp, kp = (scene[n].parameters for n in ("tissue", "catheter", "contact"))
+    operator = scene["operator"].block
+
+    def operator_insertion(t: float) -> float:
+        return float(operator.evaluate(t)["insertion"][0])
+
+    tissue = TissueModel(aaa_mesh(), TissueParameters(
+        law=tp["law"], integrator=tp["integrator"], viscosity=tp["viscosity"],
+        active_region=(*tp["active_center"], tp["active_radius"])))
+    centerline = np.array(cp["centerline_points"], dtype=float).reshape(-1, 3)
+    params = CatheterParameters(n_segments=30, centerline=centerline, controller_mode=cp["controller_mode"],
+                                force_threshold=cp["force_threshold"])
     catheter = CatheterModel(params, dt=0.001)
     catheter.reset(operator_insertion(0.0), 0.0)
     contact = ContactModel(tissue.surface_triangles, tissue.n_surface, 31,
-                           ContactParameters(tool="centerline", stiffness=200.0, damping=0.1, local_model="extrapolate"))
+                           ContactParameters(tool=kp["tool"], stiffness=kp["stiffness"], damping=kp["damping"],
+                                             local_model=kp["local_model"]))
     contact.set_tissue_frame(0.0, tissue.surface_positions(), tissue.surface_velocities())
     n_fast = int(round(duration * 1000))
     tip_force = np.zeros(3)

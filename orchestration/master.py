@@ -81,6 +81,7 @@ class _Component:
     recorded: list[str] = field(default_factory=list)
     histories: dict[str, list[tr.SampleHistory]] = field(default_factory=dict)
     consumers: list[tuple["_Component", _Input]] = field(default_factory=list)
+    surfaces: list = field(default_factory=list)          # VTU series written from this component
 
     @property
     def name(self) -> str:
@@ -254,8 +255,9 @@ class Simulation:
         for name, comp in self.components.items():
             for port in self.stats.ports(name):
                 _add(comp.observed, port)
-        for surface in scene.surfaces:
+        for surface in scene.surfaces if self.write_vtu else ():
             comp = self.components[surface.component]
+            comp.surfaces.append(surface)
             for port in (surface.positions, *surface.point_data):
                 _add(comp.observed, port)
         for name, ports in self.extra_observed.items():
@@ -436,10 +438,9 @@ class Simulation:
                 self.deadline_misses += 1
                 self.worst_lateness = max(self.worst_lateness, late)
         self._store(comp, comp.time, outputs)
-        if self.write_vtu:
-            for surface in self.scene.surfaces:
-                if surface.component == comp.name and comp.steps % surface.every == 0:
-                    self._write_surface(surface, comp, comp.time, outputs)
+        for surface in comp.surfaces:
+            if comp.steps % surface.every == 0:
+                self._write_surface(surface, comp, comp.time, outputs)
 
     def _loop(self, bar) -> None:
         from multiprocessing.connection import wait

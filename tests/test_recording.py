@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from orchestration.plots import _series_lines, plot_signals
-from orchestration.recording import (Recorder, RecordingError, format_summary, port_values, read_stream,
+from orchestration.recording import (Recorder, RecordingError, port_values, read_stream,
                                      write_summary)
 
 REPO = Path(__file__).resolve().parent.parent
@@ -236,23 +236,6 @@ def test_summary_json_round_trip(tmp_path):
         "peak_forces": {"contact.tool_force": {"value": 2.5, "unit": "N"}},
         "warnings": ["Catheter: effort warning at t = 1.2 s"], "energy_drift": [0.1, -0.2],
         "output_dir": str(tmp_path)}
-
-
-def test_format_summary_shows_values_units_sections_and_truncated_warnings():
-    summary = {"title": "AAA run", "real_time_factor": 1.234567, "deadline_misses": 3,
-               "peak_force": {"value": 3.21987, "unit": "N"},
-               "energy": {"drift": {"value": -1.5e-5, "unit": "J"}, "relative_drift": 0.0012345},
-               "warnings": [f"warning {i}" for i in range(13)]}
-    text = format_summary(summary)
-    lines = text.splitlines()
-    assert lines[0] == "AAA run"
-    assert "  real_time_factor  1.235" in lines
-    assert "  deadline_misses   3" in lines
-    assert "  peak_force        3.22 N" in lines
-    assert "  energy:" in lines and "    drift           -1.5e-05 J" in lines
-    assert "    relative_drift  0.001234" in lines
-    assert "    - warning 9" in lines and "    - warning 10" not in lines
-    assert "    ... and 3 more" in lines
 
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -266,6 +266,8 @@ class TissueModel:
         self._external_force = np.zeros((n, 3))
         self._statistics = StepStatistics()
         self._critical_time_step: float | None = None
+        self._max_strain = 0.0          # of the current displacement, computed once per step
+        self._strain_warned = False     # the extreme-strain warning is given once
         self.integrator = self._make_integrator()
         logger.info(
             "tissue model: %d nodes (%d fixed), %d/%d active tets, %d surface nodes, law=%s, integrator=%s",
@@ -402,7 +404,7 @@ class TissueModel:
         Green strains of 1e3 (nodes across the lumen) while every node stayed inside the
         divergence test above.
         """
-        strain = float(self.force_field.max_strain(self.displacement))
+        strain = self._max_strain = float(self.force_field.max_strain(self.displacement))
         if strain <= STRAIN_WARNING:
             return
         points = self.mesh.points + self.displacement
@@ -424,7 +426,7 @@ class TissueModel:
                 f"(contact stiffness, indentation), raise young_modulus ({self.params.young_modulus:.4g} Pa) or refine "
                 f"the mesh"
             )
-        if not getattr(self, "_strain_warned", False):
+        if not self._strain_warned:
             self._strain_warned = True
             logger.warning(
                 "max Green strain %.3g at t = %.6g s exceeds %g (a %.0f %% stretch): the %s law is used outside "
@@ -437,6 +439,7 @@ class TissueModel:
         self.velocity.fill(0.0)
         self._external_force.fill(0.0)
         self._statistics = StepStatistics()
+        self._max_strain = 0.0
         self.time = 0.0
         if isinstance(self.integrator, BackwardEuler):
             self.integrator.dv.fill(0.0)
@@ -459,6 +462,7 @@ class TissueModel:
         np.copyto(self.displacement, state["displacement"])
         np.copyto(self.velocity, state["velocity"])
         np.copyto(self._external_force, state["external_force"])
+        self._max_strain = float(self.force_field.max_strain(self.displacement))
         if isinstance(self.integrator, BackwardEuler) and "warm_start" in state:
             np.copyto(self.integrator.dv, state["warm_start"])
 
@@ -488,7 +492,7 @@ class TissueModel:
 
     @property
     def max_strain(self) -> float:
-        return float(self.force_field.max_strain(self.displacement))
+        return self._max_strain
 
     @property
     def nonlinear_fraction(self) -> float:
