@@ -148,7 +148,7 @@ def main() -> None:
                                              source_root=REPO / "tests" / "synthetic"), Path(tmp))
         contact_samples = run(contact, lambda k: {"tool_positions": tool(k)}, CONTACT_OUTPUTS, with_fmpy=True)
         signal_samples = run(signal, lambda k: {}, ["y", "y3", "count", "odd"], with_fmpy=False,
-                             values={"communication_step": DT})
+                             values={"internal_step": DT})
     overhead_contact = report("Contact (93 inputs, 8073 observed values)", contact_samples)
     overhead_signal = report("Signal (trivial FMU, 6 observed values)", signal_samples)
     print(f"\nworker round-trip overhead per step (worker median - in-process median): "

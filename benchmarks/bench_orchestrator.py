@@ -96,7 +96,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=4.0, help="simulated seconds per run (default 4)")
     args = parser.parse_args()
     # The models are imported before any FMU is loaded: an FMU's resources folder on sys.path
-    # would otherwise shadow the packages (pythonfmu3 adds it).
+    # would otherwise shadow the packages.
     import catheter_fmu.model  # noqa: F401
     import haptic_fmu.model  # noqa: F401
     import tissue_fmu.model  # noqa: F401
@@ -125,7 +125,7 @@ def main() -> None:
     print(f"    of which the master itself (scheduling, transitions, recording) = "
           f"{100 * (inproc['wall_time_s'] - busy) / inproc['wall_time_s']:5.1f} % "
           f"({1e6 * (inproc['wall_time_s'] - busy) / steps:.0f} us per component step)")
-    print(f"    and the FMI layer (pythonfmu3 calls, value copies) = "
+    print(f"    and the FMI layer (FMI calls, value copies) = "
           f"{100 * (busy - direct) / inproc['wall_time_s']:5.1f} % ({1e6 * (busy - direct) / steps:.0f} us per component step)")
     print(f"  every FMU in a worker / in-process     = {inproc['wall_time_s'] / outproc['wall_time_s']:5.2f}x speed")
     print(f"  tissue in a worker / in-process        = {inproc['wall_time_s'] / mixed['wall_time_s']:5.2f}x speed "

@@ -1,34 +1,36 @@
 """Build the project's FMUs (``python -m orchestration build``).
 
-Each FMU is a pythonfmu3 FMI 3.0 Co-Simulation FMU that carries its own package source as
-resources (DESIGN.md section 2): ``Tissue.fmu`` carries ``tissue_fmu``, and so on. No FMU carries
-another FMU's package.
+An FMU here is the project's own FMI 3.0 Co-Simulation layer (``src/fmi3_layer``: C source
+compiled by the system C compiler, and its Python runtime) plus one package of the project
+carried as resources, whose ``fmu.py`` declares the FMU once (``FmuDeclaration``). The archive:
 
-Two toolchain defects are handled here rather than hidden:
+```
+modelDescription.xml                     generated from the declaration
+binaries/x86_64-linux/<id>.so            the FMI layer (links to no libpython; see python_embed.h)
+resources/fmi3_runtime.py                the layer's Python side
+resources/numba_cache.py                 content-keyed numba cache (loads do not recompile)
+resources/fmu.json                       package, declaration, token, the build's Python environment
+resources/libpython.txt                  the libpython a non-Python importer loads
+resources/<package>/                     the model's package (its own copy, imported under a unique name)
+documentation/index.html                 ports and how to run the FMU outside Python
+```
 
-* pythonfmu3 0.3.4's shared library has a use-after-free at process exit: the namespace-scope
-  ``std::shared_ptr<PyState> pyState`` is destroyed by its static destructor (run from
-  ``__run_exit_handlers``), and then the library's ``__attribute__((destructor))``
-  ``finalizePythonInterpreter`` assigns ``nullptr`` to the destroyed object, releasing the same
-  control block a second time. valgrind shows the invalid read in ``finalizePythonInterpreter``
-  of a block freed in ``__run_exit_handlers``. Whether the process then aborts ("corrupted
-  double-linked list", reported by the next ``free`` at exit, often libgfortran's exit handler)
-  depends on the heap layout, which is why numba compilation inside an FMU made it likely and
-  a host that compiled numba first made it rare. We build the export library from pythonfmu3's
-  own sources with one change: ``pyState`` becomes a reference to a heap object that is never
-  destroyed, so only ``finalizePythonInterpreter`` releases it, once.
-* Python FMUs in one process share one interpreter, so the builder runs in a fresh interpreter
-  (its import of the package must not replace the copy loaded FMUs use), the entry script of
-  each FMU gets a unique module name (``<model>_<package>_entry``) and imports the package it carries under a unique
-  name (``<model identifier>_<package>``), never a copy the host imported already.
+The declaration is read in a fresh interpreter from the package copy that goes into the FMU, so
+the start values in the XML are exactly those the FMU starts with, and the build never imports a
+package into a process that may have loaded an FMU of it.
 """
 from __future__ import annotations
 
+import datetime
 import hashlib
+import json
 import logging
+import os
 import shutil
+import site
 import subprocess
 import sys
+import sysconfig
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -38,59 +40,12 @@ logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SRC = REPO_ROOT / "src"
+LAYER = SRC / "fmi3_layer"
 DEFAULT_FMU_DIR = REPO_ROOT / "fmus"
 BUILD_DIR = REPO_ROOT / "build"
-
-# The line in pythonfmu3 0.3.4's PySlaveInstance.cpp that holds the PyState with static storage
-# duration, and its replacement (a reference to a never-destroyed heap object).
-_PYSTATE_DECLARATION = "    std::shared_ptr<pythonfmu::PyState> pyState{};"
-_PYSTATE_PATCHED = (
-    "    // Patched by orchestration/build.py: never destroyed by a static destructor, so that\n"
-    "    // finalizePythonInterpreter() is the only owner that releases it (no use-after-free).\n"
-    "    std::shared_ptr<pythonfmu::PyState>& pyState = *new std::shared_ptr<pythonfmu::PyState>();"
-)
-
-# fmi3GetFloat64 in pythonfmu3 0.3.4 reads the values from a Python list, one PyFloat each: an
-# 8064-value array (the tissue surface) costs about 160 us in float boxing alone, too much for the
-# 1 kHz loop. The patched getter also accepts the values packed as native doubles in a bytes
-# object (the slaves' ``get_float64`` returns ``ndarray.tobytes()``) and copies them in one memcpy,
-# checking the length. Bytes, not the buffer protocol: the library is built against the limited
-# API of Python 3.2, which has no buffer protocol.
-_GET_FLOAT64_LOOP = """        for (int i = 0; i < nValues; i++) {
-            PyObject* value = PyList_GetItem(refs, i);
-            values[i] = PyFloat_AsDouble(value);
-        }
-        Py_DECREF(refs);
-        clearLogBuffer();
-    });
-}
-
-void PySlaveInstance::GetInt32("""
-_GET_FLOAT64_PATCHED = """        if (PyBytes_Check(refs)) {
-            // Patched by orchestration/build.py: the values as packed doubles, copied at once.
-            char* data = nullptr;
-            Py_ssize_t length = 0;
-            if (PyBytes_AsStringAndSize(refs, &data, &length) != 0 ||
-                static_cast<std::size_t>(length) != nValues * sizeof(cppfmu::FMIFloat64)) {
-                Py_DECREF(refs);
-                if (!PyErr_Occurred()) {
-                    PyErr_SetString(PyExc_ValueError, "get_float64 returned bytes of the wrong length");
-                }
-                handle_py_exception("[getFloat64] packed values", gilState);
-            }
-            std::memcpy(values, data, static_cast<std::size_t>(length));
-        } else {
-            for (int i = 0; i < nValues; i++) {
-                PyObject* value = PyList_GetItem(refs, i);
-                values[i] = PyFloat_AsDouble(value);
-            }
-        }
-        Py_DECREF(refs);
-        clearLogBuffer();
-    });
-}
-
-void PySlaveInstance::GetInt32("""
+PLATFORM = "x86_64-linux"
+LAYER_SOURCES = ("fmi3Functions.c", "python_embed.c", "python_embed.h")
+RUNTIME_FILES = ("fmi3_runtime.py", "numba_cache.py")
 
 
 class BuildError(RuntimeError):
@@ -99,139 +54,99 @@ class BuildError(RuntimeError):
 
 @dataclass(frozen=True)
 class FmuSpec:
-    """One FMU of the project: its model identifier, the package it carries and its slave class."""
+    """One FMU: its model identifier, the package it carries and the declaration in that package."""
 
     model_identifier: str
     package: str
-    slave_module: str
-    slave_class: str
+    #: ``module:attribute`` of the FmuDeclaration inside the package
+    declaration: str = "fmu:DECLARATION"
     #: folder that holds the package (default: ``src/``); test FMUs live elsewhere
     source_root: Path = SRC
 
-    @property
-    def entry_module(self) -> str:
-        # named after the model too: pythonfmu3 reuses an entry module already imported under
-        # the same name, so two FMUs built from one package need two names
-        return f"{self.model_identifier.lower()}_{self.package}_entry"
-
 
 FMU_SPECS: dict[str, FmuSpec] = {
-    "Tissue": FmuSpec("Tissue", "tissue_fmu", "tissue_fmu.fmu", "TissueSlave"),
-    "Contact": FmuSpec("Contact", "haptic_fmu", "haptic_fmu.fmu", "ContactSlave"),
-    "Catheter": FmuSpec("Catheter", "catheter_fmu", "catheter_fmu.fmu", "CatheterSlave"),
+    "Tissue": FmuSpec("Tissue", "tissue_fmu"),
+    "Contact": FmuSpec("Contact", "haptic_fmu"),
+    "Catheter": FmuSpec("Catheter", "catheter_fmu"),
 }
 
 
 def available_fmus() -> list[str]:
-    """FMUs whose package has an FMU layer in this checkout."""
+    """FMUs whose package has an FMU declaration in this checkout."""
     return [name for name, spec in FMU_SPECS.items() if (SRC / spec.package / "fmu.py").exists()]
 
 
-def _pythonfmu3_dir() -> Path:
-    import pythonfmu3
-
-    return Path(pythonfmu3.__file__).resolve().parent
-
-
-def _platform_folder() -> str:
-    from pythonfmu3.osutil import get_platform
-
-    return get_platform()
+def _digest(paths) -> str:
+    sha = hashlib.sha256()
+    for path in paths:
+        sha.update(path.name.encode())
+        sha.update(path.read_bytes())
+    return sha.hexdigest()
 
 
-def export_library(build_dir: Path = BUILD_DIR) -> Path:
-    """Build (once, cached by source hash) the patched pythonfmu3 export library; return its path."""
-    source = _pythonfmu3_dir() / "pythonfmu-export"
-    instance_cpp = source / "src" / "pythonfmu" / "PySlaveInstance.cpp"
-    text = instance_cpp.read_text()
-    if _PYSTATE_DECLARATION not in text or _GET_FLOAT64_LOOP not in text:
-        raise BuildError(
-            f"cannot apply the patches (exit-time use-after-free, fast array getter): {instance_cpp} does not contain the expected "
-            f"declaration {_PYSTATE_DECLARATION.strip()!r} and GetFloat64 loop. This build supports pythonfmu3 0.3.4 (pinned in "
-            "pyproject.toml); reinstall it with `pip install -e .`."
-        )
-    digest = hashlib.sha256((text + _PYSTATE_PATCHED + _GET_FLOAT64_PATCHED + sys.version).encode()).hexdigest()[:16]
-    work = build_dir / f"pythonfmu-export-{digest}"
-    lib_name = "libpythonfmu-export.so"
-    built = work / "resources" / "binaries" / _platform_folder() / lib_name
-    if built.exists():
-        return built
-
-    for tool in ("cmake", "c++"):
-        if shutil.which(tool) is None:
-            raise BuildError(
-                f"`{tool}` was not found on PATH: building the FMUs compiles pythonfmu3's export library "
-                "with a fix for its exit-time crash. Install a C++ compiler and CMake "
-                "(Debian: `apt-get install -y g++ cmake`) and run the build again."
-            )
-    if work.exists():
-        shutil.rmtree(work)
-    shutil.copytree(source, work / "export", ignore=shutil.ignore_patterns("build", "__pycache__"))
-    patched = work / "export" / "src" / "pythonfmu" / "PySlaveInstance.cpp"
-    patched_text = text.replace(_PYSTATE_DECLARATION, _PYSTATE_PATCHED).replace(_GET_FLOAT64_LOOP, _GET_FLOAT64_PATCHED)
-    if "#include <cstring>" not in patched_text:
-        patched_text = "#include <cstring>\n" + patched_text
-    patched.write_text(patched_text)
-    # pythonfmu3's CMakeLists writes the library to <source>/../resources/binaries/<platform>.
-    cmake_build = work / "export" / "build"
-    cmake_build.mkdir()
-    logger.info("compiling the patched pythonfmu3 export library in %s", work)
-    steps = [
-        ["cmake", "..", "-DCMAKE_BUILD_TYPE=Release", f"-DPython3_EXECUTABLE={sys.executable}"],
-        ["cmake", "--build", ".", "-j2"],
-    ]
-    for cmd in steps:
-        proc = subprocess.run(cmd, cwd=cmake_build, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise BuildError(
-                f"`{' '.join(cmd)}` failed (exit {proc.returncode}) while building pythonfmu3's export library:\n"
-                f"{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
-            )
-    if not built.exists():
-        raise BuildError(f"the export library build finished but {built} is missing")
-    return built
+def layer_library(build_dir: Path = BUILD_DIR) -> Path:
+    """Compile (once per source version) the FMI layer's shared library; return its path."""
+    sources = [LAYER / name for name in LAYER_SOURCES] + sorted((LAYER / "include").glob("*.h"))
+    work = Path(build_dir) / f"fmi3_layer-{_digest(sources)[:16]}"
+    library = work / "fmi3_layer.so"
+    if library.exists():
+        return library
+    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if compiler is None:
+        raise BuildError("no C compiler found (cc, gcc or clang): building the FMUs compiles the project's FMI "
+                         "layer. Install one (Debian: `apt-get install -y gcc`) or set CC, and build again.")
+    work.mkdir(parents=True, exist_ok=True)
+    partial = work / "fmi3_layer.so.partial"
+    command = [compiler, "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fPIC", "-shared",
+               "-fvisibility=hidden", f"-I{LAYER / 'include'}", str(LAYER / "fmi3Functions.c"),
+               str(LAYER / "python_embed.c"), "-o", str(partial), "-ldl", "-lpthread", "-lm"]
+    proc = subprocess.run(command, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise BuildError(f"compiling the FMI layer failed (exit {proc.returncode}):\n{' '.join(command)}\n"
+                         f"{proc.stderr[-3000:]}")
+    partial.replace(library)
+    return library
 
 
-_ENTRY_TEMPLATE = '''"""FMU entry point of {model_identifier} (generated by orchestration/build.py).
+def python_environment() -> dict:
+    """What a non-Python importer needs to run the FMU's Python: this interpreter's library and packages."""
+    libdir = sysconfig.get_config_var("LIBDIR") or ""
+    ldlibrary = sysconfig.get_config_var("LDLIBRARY") or ""
+    library = Path(libdir) / ldlibrary
+    shared = bool(sysconfig.get_config_var("Py_ENABLE_SHARED")) and library.exists()
+    return {
+        "libpython": str(library.resolve()) if shared else "",
+        "python_version": "%d.%d" % sys.version_info[:2],
+        "base_prefix": sys.base_prefix,
+        "site_packages": [p for p in site.getsitepackages() if Path(p).is_dir()],
+    }
 
-Python FMUs in one process share one interpreter. So that this FMU always runs the package it
-carries (not a copy the host or another FMU imported under the same name), the package is
-imported under the unique name ``{model_identifier}_{package}``. Before it (and its numba kernels)
-is imported, a content-keyed numba cache is enabled so that a new extraction of the FMU does not
-compile the kernels again. The class statement below is what pythonfmu3's loader looks for.
+
+_DESCRIBE_SCRIPT = r"""
+import importlib, json, sys
+resources, package, declaration, runtime_dir, identifier, digest, date, out = sys.argv[1:9]
+sys.path.insert(0, resources)
+sys.path.insert(0, runtime_dir)
+import fmi3_runtime
+module_name, _, attribute = declaration.partition(":")
+decl = getattr(importlib.import_module(package + "." + module_name), attribute)
+token = fmi3_runtime.instantiation_token(decl, digest)
+xml = fmi3_runtime.model_description(decl, identifier, token, date)
+open(out, "w", encoding="utf-8").write(xml)
+print(json.dumps({"token": token, "model_name": decl.model_name, "description": decl.description}))
 """
-import importlib
-import importlib.util
-import pathlib
-import sys
-
-from pythonfmu3 import Fmi3Slave
-
-_package_dir = pathlib.Path(__file__).resolve().parent / "{package}"
-_spec = importlib.util.spec_from_file_location("{model_identifier}_fmi_cache", _package_dir / "_fmi_support.py")
-_support = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_support)
-_support.enable_stable_numba_cache(_package_dir)
-
-_name = "{model_identifier}_{package}"
-if _name not in sys.modules:
-    _spec = importlib.util.spec_from_file_location(_name, _package_dir / "__init__.py",
-                                                   submodule_search_locations=[str(_package_dir)])
-    sys.modules[_name] = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(sys.modules[_name])
-    # pythonfmu3 imports this entry module once per process and reuses it for every later
-    # instance, even after the importer deleted this extraction folder: import every module of
-    # the package now, so that nothing is looked up in a deleted folder later.
-    for _module in sorted(_package_dir.glob("*.py")):
-        if _module.stem != "__init__":
-            importlib.import_module(_name + "." + _module.stem)
-_Implementation = importlib.import_module(_name + ".fmu").{slave_class}
 
 
-class {model_identifier}(_Implementation, Fmi3Slave):
-    """{model_identifier}: see the package documentation of {package}."""
-'''
-
+def _describe(spec: FmuSpec, resources: Path, digest: str, out: Path) -> dict:
+    """Write modelDescription.xml from the declaration in a fresh interpreter; return its token."""
+    date = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+    proc = subprocess.run([sys.executable, "-c", _DESCRIBE_SCRIPT, str(resources), spec.package, spec.declaration,
+                           str(LAYER), spec.model_identifier, digest, date, str(out)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise BuildError(f"{spec.model_identifier}: reading the declaration {spec.package}.{spec.declaration} "
+                         f"failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
@@ -242,56 +157,73 @@ def build_fmu(name: str, dest: Path = DEFAULT_FMU_DIR) -> Path:
 
 
 def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
-    """Build the FMU described by ``spec`` (its package must hold ``_fmi_support.py``) into ``dest``."""
+    """Build the FMU described by ``spec`` into ``dest``; return the path of the .fmu."""
     name = spec.model_identifier
     package_dir = Path(spec.source_root) / spec.package
-    if not (package_dir / "fmu.py").exists():
-        raise BuildError(f"{name}: {package_dir / 'fmu.py'} does not exist in this checkout")
-    library = export_library()
+    if not (package_dir / "__init__.py").exists():
+        raise BuildError(f"{name}: {package_dir} is not a package in this checkout")
+    library = layer_library()
+    environment = python_environment()
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f"build_{name}_") as tmp:
-        tmp = Path(tmp)
-        entry = tmp / f"{spec.entry_module}.py"
-        entry.write_text(_ENTRY_TEMPLATE.format(model_identifier=spec.model_identifier, package=spec.package,
-                                                slave_class=spec.slave_class))
-        package_copy = tmp / spec.package
-        shutil.copytree(package_dir, package_copy, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc"))
+        root = Path(tmp) / "fmu"
+        resources = root / "resources"
+        package_copy = resources / spec.package
+        # symlinks (the shared _fmi.py) become files: an FMU carries everything it imports
+        shutil.copytree(package_dir, package_copy, symlinks=False,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc"))
         _add_build_data(spec, package_copy)
-        fmu_path = _run_builder(entry, tmp / "out", package_copy)
-        final = dest / fmu_path.name
-        _replace_binary(fmu_path, final, library, spec.model_identifier)
+        for file in RUNTIME_FILES:
+            shutil.copyfile(LAYER / file, resources / file)
+        digest = _digest(sorted(package_copy.rglob("*.py")) + [LAYER / f for f in RUNTIME_FILES + LAYER_SOURCES])
+        description = _describe(spec, resources, digest, root / "modelDescription.xml")
+        meta = {
+            "model_identifier": name,
+            "package": spec.package,
+            "declaration": spec.declaration,
+            "instantiation_token": description["token"],
+            **environment,
+        }
+        (resources / "fmu.json").write_text(json.dumps(meta, indent=2))
+        (resources / "libpython.txt").write_text(environment["libpython"] + "\n")
+        binaries = root / "binaries" / PLATFORM
+        binaries.mkdir(parents=True)
+        shutil.copyfile(library, binaries / f"{name}.so")
+        (root / "documentation").mkdir()
+        (root / "documentation" / "index.html").write_text(_documentation(description, environment))
+        partial = dest / f".{name}.fmu.partial"
+        with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as archive:
+            for path in sorted(root.rglob("*")):
+                if path.is_file():
+                    archive.write(path, path.relative_to(root).as_posix())
+        final = dest / f"{name}.fmu"
+        partial.replace(final)  # an FMU in use by a running importer is never half-written
     logger.info("built %s", final)
     return final
 
 
-_BUILDER_SCRIPT = """
-import sys
-from pythonfmu3.builder import FmuBuilder
-entry, out, package = sys.argv[1:4]
-sys.path.insert(0, str(__import__("pathlib").Path(entry).parent))
-path = FmuBuilder.build_FMU(entry, dest=out, project_files=[package], canHandleVariableCommunicationStepSize=False)
-print(path)
+def _documentation(description: dict, environment: dict) -> str:
+    library = environment["libpython"] or "(none: this Python was built without a shared library)"
+    return f"""<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>{description['model_name']}</title></head><body>
+<h1>{description['model_name']}</h1>
+<p>{description['description']}</p>
+<p>Variables, units and start values: <code>modelDescription.xml</code>. FMI 3.0 Co-Simulation; the
+communication step must be a whole multiple of <code>fixedInternalStepSize</code> (parameter
+<code>internal_step</code>). FMU state can be saved, restored and serialized.</p>
+<h2>Running it</h2>
+<p>The model is Python code (in <code>resources/</code>) run by an embedded CPython {environment['python_version']}.
+In a Python importer (FMPy, ...) the importer's interpreter is used: run the importer with an
+environment that has numpy, scipy, numba, meshio and trimesh. In any other importer (C, C++, Rust, ...)
+the FMU loads the Python library recorded at build time:</p>
+<pre>{library}</pre>
+<p>and the packages of <code>{', '.join(environment['site_packages'])}</code>. To use another installation set
+<code>AAA_COSIM_LIBPYTHON</code> to its <code>libpython3.x.so</code> and <code>PYTHONPATH</code> to a
+site-packages folder with those packages. The embedded interpreter is never finalized: the process exit
+reclaims it.</p>
+</body></html>
 """
-
-
-def _run_builder(entry: Path, out: Path, package_copy: Path) -> Path:
-    """Run pythonfmu3's builder on ``entry`` in a fresh interpreter; return the FMU it wrote.
-
-    The builder imports the entry script (to write modelDescription.xml). In this process that
-    import would replace, under the package's unique name, a copy that FMUs loaded here already
-    use (pythonfmu3 reuses entry modules per process): a build inside a process that had loaded
-    Contact.fmu broke the next Contact instance with "No module named 'Contact_haptic_fmu'".
-    """
-    proc = subprocess.run([sys.executable, "-c", _BUILDER_SCRIPT, str(entry), str(out), str(package_copy)],
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise BuildError(f"pythonfmu3's builder failed on {entry.name} (exit {proc.returncode}):\n"
-                         f"{proc.stderr[-3000:]}")
-    lines = [line for line in proc.stdout.splitlines() if line.strip()]
-    if not lines or not Path(lines[-1]).is_file():
-        raise BuildError(f"pythonfmu3's builder did not report an FMU for {entry.name}:\n{proc.stdout[-2000:]}")
-    return Path(lines[-1])
 
 
 def _add_build_data(spec: FmuSpec, package_copy: Path) -> None:
@@ -312,20 +244,6 @@ def _add_build_data(spec: FmuSpec, package_copy: Path) -> None:
                  positions=mesh.points[nodes])
 
 
-def _replace_binary(src_fmu: Path, dst_fmu: Path, library: Path, model_identifier: str) -> None:
-    """Copy the FMU archive, swapping the platform binary for the patched export library."""
-    target = f"binaries/{_platform_folder()}/{model_identifier}.so"
-    with zipfile.ZipFile(src_fmu) as zin, zipfile.ZipFile(dst_fmu, "w", zipfile.ZIP_DEFLATED) as zout:
-        names = zin.namelist()
-        if target not in names:
-            raise BuildError(f"{src_fmu.name} has no {target}: pythonfmu3 has no binary for this platform")
-        for item in zin.infolist():
-            if item.filename == target:
-                zout.write(library, arcname=target)
-            else:
-                zout.writestr(item, zin.read(item.filename))
-
-
 def build_all(names: list[str] | None = None, dest: Path = DEFAULT_FMU_DIR) -> list[Path]:
     """Build the named FMUs (default: every FMU whose package exists) and return their paths."""
     names = names or available_fmus()
@@ -333,10 +251,11 @@ def build_all(names: list[str] | None = None, dest: Path = DEFAULT_FMU_DIR) -> l
 
 
 def fmu_is_stale(name: str, dest: Path = DEFAULT_FMU_DIR) -> bool:
-    """True when the FMU is missing or older than any source file of its package."""
+    """True when the FMU is missing or older than any source file of its package or of the FMI layer."""
     spec = FMU_SPECS[name]
     fmu = Path(dest) / f"{spec.model_identifier}.fmu"
     if not fmu.exists():
         return True
-    newest = max(p.stat().st_mtime for p in (SRC / spec.package).rglob("*.py"))
+    sources = list((SRC / spec.package).rglob("*.py")) + [p for p in LAYER.rglob("*") if p.is_file()]
+    newest = max(p.stat().st_mtime for p in sources)
     return newest > fmu.stat().st_mtime

@@ -158,6 +158,7 @@ class InProcessFmu:
         self._unzip_dir: str | None = None
         self._initialized = False
         self._terminated = False
+        self._failed = False  # after fmi3Error the standard allows no fmi3Terminate
         self._time: float | None = None
         self._inputs: dict[str, _InputPort] = {}
         self._input_list: list[_InputPort] = []
@@ -202,16 +203,29 @@ class InProcessFmu:
         if unknown:
             raise PortConfigurationError(f"{self.name} has no variable(s) {', '.join(map(repr, unknown))}; "
                                          f"its variables are: {', '.join(sorted(self.ports))}")
-        ordered = sorted(values, key=lambda n: self.ports[n].causality != "structuralParameter")
-        for name in ordered:
-            port = self.ports[name]
-            converted = _convert_for_setter(self.name, port, values[name])
-            call = f"fmi3Set{port.type}({name})"
-            setter = getattr(self._slave, f"set{port.type}", None)
-            if setter is None:
-                raise PortConfigurationError(f"{self.name}.{name}: setting {port.type} variables is not supported")
-            mark = len(self.messages)
-            self._checked(call, lambda: setter([port.value_reference], converted), mark)
+        # every value is converted (and refused) before any call, so a refusal changes nothing
+        converted = {name: _convert_for_setter(self.name, self.ports[name], value) for name, value in values.items()}
+        for name in converted:
+            if not hasattr(self._slave, f"set{self.ports[name].type}"):
+                raise PortConfigurationError(f"{self.name}.{name}: setting {self.ports[name].type} variables is "
+                                             "not supported")
+        structural = [n for n in converted if self.ports[n].causality == "structuralParameter"]
+        if structural:  # FMI 3.0: structural parameters are set in Configuration Mode
+            self._checked("fmi3EnterConfigurationMode", self._slave.enterConfigurationMode, len(self.messages))
+            try:
+                for name in structural:
+                    self._set_value(name, converted[name])
+            finally:
+                self._checked("fmi3ExitConfigurationMode", self._slave.exitConfigurationMode, len(self.messages))
+        for name in converted:
+            if name not in structural:
+                self._set_value(name, converted[name])
+
+    def _set_value(self, name: str, converted: list) -> None:
+        port = self.ports[name]
+        setter = getattr(self._slave, f"set{port.type}")
+        mark = len(self.messages)
+        self._checked(f"fmi3Set{port.type}({name})", lambda: setter([port.value_reference], converted), mark)
 
     def get_values(self, names: list[str]) -> dict[str, np.ndarray]:
         """Current values of numeric variables of any causality, as float64 arrays (not the hot path:
@@ -364,7 +378,7 @@ class InProcessFmu:
             return
         self._terminated = True
         if self._slave is not None and self._component is not None:
-            if self._initialized:
+            if self._initialized and not self._failed:
                 try:
                     status = self._raw["fmi3Terminate"](self._component)
                     if status > FMI_WARNING:
@@ -415,6 +429,7 @@ class InProcessFmu:
         (the following fmi3DoStep would fail): reporting it at the call that caused it is clearer.
         """
         if status > FMI_WARNING:
+            self._failed = True
             raise FmuCallError(self.name, call, self._time, self._logged_reason(mark), status)
         logged_error = max((s for s, _ in self.messages[mark:]), default=FMI_OK)
         if logged_error >= FMI_ERROR:
@@ -426,6 +441,7 @@ class InProcessFmu:
         try:
             action()
         except FMICallException as exc:
+            self._failed = True
             raise FmuCallError(self.name, call, self._time, self._logged_reason(mark), exc.status) from None
         self._check(call, FMI_OK, mark)
 

@@ -306,15 +306,16 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             continue
         step = parse_time(step_value, f"{where} step", problems)
         ports = description.ports
-        if step is not None and "communication_step" in ports:
-            given = parameters.get("communication_step")
+        if step is not None and "internal_step" in ports:
+            # the project's FMUs: the scene's step is the model's own rate
+            given = parameters.get("internal_step")
             if given is not None and abs(float(given) - float(step)) > 1e-12 * float(step):
-                problems.append(f"{where} parameters.communication_step = {given} differs from step = {step_value}; "
+                problems.append(f"{where} parameters.internal_step = {given} differs from step = {step_value}; "
                                 "remove the parameter (the master sets it from step)")
-            parameters["communication_step"] = float(step)
+            parameters["internal_step"] = float(step)
         elif step is not None and description.default_step and abs(float(step) - description.default_step) > 1e-12:
             problems.append(f"{where} step: this FMU's communication step is fixed at {description.default_step} s "
-                            f"and it has no communication_step parameter; use step = {description.default_step}")
+                            f"and it has no internal_step parameter; use step = {description.default_step}")
         _check_parameters(where, parameters, ports, problems)
         hosting = table.get("hosting")
         if hosting is not None and hosting not in HOSTINGS:

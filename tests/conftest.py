@@ -38,7 +38,7 @@ SYNTHETIC_ROOT = Path(__file__).resolve().parent / "synthetic"
 
 
 SYNTHETIC_SPECS = {
-    name: FmuSpec(name, "synthetic_fmu", "synthetic_fmu.fmu", f"{name}Slave", source_root=SYNTHETIC_ROOT)
+    name: FmuSpec(name, "synthetic_fmu", f"fmu:{name.upper()}", source_root=SYNTHETIC_ROOT)
     for name in ("Signal", "Echo", "Faulty")
 }
 

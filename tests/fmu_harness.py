@@ -36,6 +36,17 @@ class FmuInstance:
         return int(np.prod(self.vars[name].shape)) if self.vars[name].dimensions else 1
 
     def set(self, name, values):
+        """Set a variable; a structural parameter is set in Configuration Mode, as the standard asks."""
+        if self.vars[name].causality == "structuralParameter":
+            self.slave.enterConfigurationMode()
+            try:
+                self._set(name, values)
+            finally:
+                self.slave.exitConfigurationMode()
+        else:
+            self._set(name, values)
+
+    def _set(self, name, values):
         kind = self.vars[name].type
         values = np.atleast_1d(values).ravel().tolist()
         if kind == "Float64":
@@ -62,24 +73,33 @@ class FmuInstance:
         self.slave.enterInitializationMode()
         self.slave.exitInitializationMode()
 
-    def expect_step_error(self, t, dt, *words):
-        """fmi3DoStep must return fmi3Error (not fatal, not a crash) and log a reason with all words."""
+    def expect_error(self, call, *words):
+        """``call()`` must return fmi3Error (not fatal, not a crash) and log a reason with all words."""
         from fmpy.fmi1 import FMICallException
 
         try:
-            self.slave.doStep(t, dt)
+            call()
         except FMICallException as exc:
             assert exc.status == 3, f"expected fmi3Error, got status {exc.status}"
         else:
-            raise AssertionError("fmi3DoStep succeeded; an error status was expected")
+            raise AssertionError("the call succeeded; an error status was expected")
         assert any(all(w in m for w in words) for m in self.errors()), self.messages
+
+    def expect_step_error(self, t, dt, *words):
+        self.expect_error(lambda: self.slave.doStep(t, dt), *words)
 
     def errors(self):
         return [m for status, m in self.messages if status >= 3]
 
     def close(self):
+        from fmpy.fmi1 import FMICallException
+
         try:
             self.slave.terminate()
+        except FMICallException:
+            # after an error the standard allows only fmi3Reset, fmi3SetFMUState and fmi3FreeInstance
+            if not self.errors():
+                raise
         finally:
             self.slave.freeInstance()
             self.slave.freeLibrary()

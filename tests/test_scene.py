@@ -185,12 +185,12 @@ def test_overrides_replace_parameters_and_steps():
 
 
 def test_model_descriptions_carry_the_real_start_values(fmus):
-    """pythonfmu3's builder reads start values through get_float64, which the slaves answer with
-    packed bytes for the export library: the builder must still get the numbers."""
+    """The model descriptions carry the start values the FMUs start with (generated from the
+    declarations)."""
     from orchestration.ports import read_fmu
 
     contact = read_fmu(fmus["Contact"]).ports
-    assert contact["stiffness"].start == 500.0 and contact["communication_step"].start == 0.001
+    assert contact["stiffness"].start == 500.0 and contact["internal_step"].start == 0.001
     assert contact["tool_positions"].start in (0.0, [0.0] * 93)
     tissue = read_fmu(fmus["Tissue"]).ports
     assert tissue["young_modulus"].start == 1.044e6 and tissue["poisson_ratio"].start == 0.45

@@ -1,9 +1,9 @@
-"""The Contact FMU: a thin FMI 3.0 Co-Simulation slave over :class:`haptic_fmu.model.ContactModel`.
+"""The Contact FMU: its interface, declared once, and the glue to :class:`haptic_fmu.model.ContactModel`.
 
 Ports follow DESIGN.md section 4. The tissue surface comes from the Tissue FMU: its topology
-(``surface_triangles``, local surface-node ids) is a fixed parameter set before initialization,
-and a new tissue frame is taken whenever ``tissue_positions`` is set (the 30 Hz refresh of the
-local model); between frames the 1 kHz loop holds or extrapolates the local model.
+(``surface_triangles``, local surface-node ids) is a fixed parameter, and a new tissue frame is
+taken exactly when the input ``tissue_frame`` changes (connect it to Tissue's ``frame``), however
+often an importer sets the other inputs; between frames the 1 kHz loop renders the local model.
 
 Start values (array sizes, triangles, rest positions) are those of the default AAA mesh; the
 build writes them to ``default_tissue_surface.npz`` beside this file from the Tissue package,
@@ -14,22 +14,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pythonfmu3 import (
-    Boolean,
-    Fmi3Causality,
-    Fmi3Slave,
-    Fmi3Variability,
-    Int32,
-    String,
-)
 
-from ._fmi_support import GuardedSlaveMixin
-from .model import ContactModel, ContactParameters
-
-C, V = Fmi3Causality, Fmi3Variability
+from ._fmi import FmuDeclaration, input_port, output, parameter, structural
+from .model import LOCAL_POLICIES, ContactModel, ContactParameters
 
 DEFAULT_SURFACE_FILE = Path(__file__).resolve().parent / "default_tissue_surface.npz"
 
+_defaults = ContactParameters()
 FLOAT_PARAMETERS = [
     ("stiffness", "N/m", "penalty stiffness k"),
     ("damping", "N.s/m", "penalty damping b"),
@@ -42,7 +33,7 @@ STRING_PARAMETERS = [
     ("penalty_law", "linear, quadratic or hunt_crossley"),
     ("detection", "continuous or discrete"),
     ("interpolation", "tissue trajectories between frames for CCD: linear or cubic"),
-    ("local_model", "between tissue frames: hold or extrapolate"),
+    ("local_model", "the wall between tissue frames: " + ", ".join(LOCAL_POLICIES)),
     ("tool", "centerline (catheter capsules) or probe (one device point)"),
 ]
 
@@ -51,104 +42,80 @@ def _default_surface() -> tuple[np.ndarray, np.ndarray]:
     """Triangles and rest positions of the default tissue surface (one triangle if none shipped)."""
     if DEFAULT_SURFACE_FILE.exists():
         data = np.load(DEFAULT_SURFACE_FILE)
-        return data["triangles"].astype(np.int64), data["positions"].astype(np.float64)
-    return np.array([[0, 1, 2]]), np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+        return data["triangles"].astype(np.int32), data["positions"].astype(np.float64)
+    return np.array([[0, 1, 2]], dtype=np.int32), np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
 
 
 # Read once at import: later instances in the same process may outlive the extraction folder.
 DEFAULT_TRIANGLES, DEFAULT_POSITIONS = _default_surface()
+PER_NODE, PER_TOOL = ("n_surface_nodes", 3), ("n_tool_points", 3)
+
+VARIABLES = (
+    *(parameter(name, float(getattr(_defaults, name)), text, unit) for name, unit, text in FLOAT_PARAMETERS),
+    *(parameter(name, str(getattr(_defaults, name)), text) for name, text in STRING_PARAMETERS),
+    parameter("passivity_controller", bool(_defaults.passivity_controller),
+              "add damping when the passivity observer sees energy created"),
+    structural("n_surface_nodes", len(DEFAULT_POSITIONS), "tissue surface nodes (array size)"),
+    structural("n_surface_triangles", len(DEFAULT_TRIANGLES), "tissue surface triangles (array size)"),
+    structural("n_tool_points", 31, "tool points: catheter centerline points, or 1 for a probe"),
+    parameter("surface_triangles", DEFAULT_TRIANGLES, "tissue surface triangles (local surface-node ids, outward)",
+              type="Int32", shape=("n_surface_triangles", 3)),
+    input_port("tissue_positions", "tissue surface node positions (from Tissue)", "m", shape=PER_NODE,
+               start=DEFAULT_POSITIONS),
+    input_port("tissue_velocities", "tissue surface node velocities (from Tissue)", "m/s", shape=PER_NODE),
+    input_port("tissue_frame", "tissue frame counter (from Tissue's frame): the tissue inputs are taken "
+               "when it changes", type="Int32", start=0),
+    input_port("tool_positions", "tool points (catheter centerline from Catheter, or the device probe)", "m",
+               shape=PER_TOOL),
+    input_port("tool_velocities", "tool point velocities (optional; differenced from positions when never set)",
+               "m/s", shape=PER_TOOL),
+    output("tool_force", "total force on the tool (device)", "N", shape=(3,)),
+    output("tip_force", "force on the last tool point (catheter tip)", "N", shape=(3,)),
+    output("tissue_contact_force", "contact forces on the tissue surface nodes (to Tissue)", "N", shape=PER_NODE),
+    output("penetration_depth", "largest interpenetration", "m"),
+    output("contact_energy", "penalty potential energy", "J"),
+    output("passivity_energy", "energy into the environment through the haptic port (>= 0: passive)", "J"),
+    output("contact_count", "number of active contacts", type="Int32"),
+)
 
 
-class ContactSlave(GuardedSlaveMixin, Fmi3Slave):
-    """Continuous collision detection, penalty response and 1 kHz haptic rendering (Contact FMU)."""
+class ContactFmu:
+    """Builds the contact model from the parameters and steps it with the inputs."""
 
-    forwarded_loggers = (__name__.rsplit(".", 1)[0],)  # this package, under whatever name it was imported
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        self._declare_basics("Continuous collision detection (AABB tree, spline trajectories), penalty "
-                             "response and penalty haptic rendering with a local model", 0.001)
-        self.model: ContactModel | None = None
-        self._new_frame = False
-        self._tool_velocities_given = False
-        defaults = ContactParameters()
-        fixed = dict(causality=C.parameter, variability=V.fixed)
-        for name, _, _ in FLOAT_PARAMETERS:
-            setattr(self, name, float(getattr(defaults, name)))
-        self._register_scalars(FLOAT_PARAMETERS, C.parameter, V.fixed)
-        for name, text in STRING_PARAMETERS:
-            setattr(self, name, str(getattr(defaults, name)))
-            self.register_variable(String(name, **fixed, description=text))
-        self.passivity_controller = bool(defaults.passivity_controller)
-        self.register_variable(Boolean("passivity_controller", **fixed,
-                                       description="add damping when the passivity observer sees energy created"))
-
-        triangles, rest = DEFAULT_TRIANGLES, DEFAULT_POSITIONS
-        self._register_structural("n_surface_nodes", len(rest), "tissue surface nodes (array size)")
-        self._register_structural("n_surface_triangles", len(triangles), "tissue surface triangles (array size)")
-        self._register_structural("n_tool_points", 31, "tool points: catheter centerline points, or 1 for a probe")
-        per_node, per_tool = ("n_surface_nodes", 3), ("n_tool_points", 3)
-        self._register_array("surface_triangles", ("n_surface_triangles", 3), C.parameter,
-                             "tissue surface triangles (local surface-node ids, outward)",
-                             variability=V.fixed, dtype=np.int32)
-        self.surface_triangles[...] = triangles
-        self._register_array("tissue_positions", per_node, C.input,
-                             "tissue surface node positions (from Tissue)", "m", on_set=self._mark_new_frame)
-        self.tissue_positions[...] = rest
-        self._register_array("tissue_velocities", per_node, C.input,
-                             "tissue surface node velocities (from Tissue)", "m/s")
-        self._register_array("tool_positions", per_tool, C.input,
-                             "tool points (catheter centerline from Catheter, or the device probe)", "m")
-        self._register_array("tool_velocities", per_tool, C.input,
-                             "tool point velocities (optional; differenced from positions when never set)",
-                             "m/s", on_set=self._mark_tool_velocities)
-        self._register_array("tool_force", (3,), C.output, "total force on the tool (device)", "N")
-        self._register_array("tip_force", (3,), C.output, "force on the last tool point (catheter tip)", "N")
-        self._register_array("tissue_contact_force", per_node, C.output,
-                             "contact forces on the tissue surface nodes (to Tissue)", "N")
-        self.penetration_depth = 0.0
-        self.contact_energy = 0.0
-        self.passivity_energy = 0.0
-        self.contact_count = 0
-        self._register_scalars([
-            ("penetration_depth", "m", "largest interpenetration"),
-            ("contact_energy", "J", "penalty potential energy"),
-            ("passivity_energy", "J", "energy into the environment through the haptic port (>= 0: passive)"),
-        ], C.output, V.continuous)
-        self.register_variable(Int32("contact_count", causality=C.output, variability=V.discrete,
-                                     description="number of active contacts"))
-
-    # -- setters with side effects ----------------------------------------------------------------
-    def _mark_new_frame(self) -> None:
-        self._new_frame = True
-
-    def _mark_tool_velocities(self) -> None:
-        self._tool_velocities_given = True
-
-    # -- model delegation -----------------------------------------------------------------------
-    def _initialize_model(self) -> None:
+    def __init__(self, values):
+        self.values = v = values
         params = ContactParameters(
-            passivity_controller=bool(self.passivity_controller),
-            **{name: float(getattr(self, name)) for name, _, _ in FLOAT_PARAMETERS},
-            **{name: str(getattr(self, name)) for name, _ in STRING_PARAMETERS},
+            passivity_controller=bool(v.passivity_controller),
+            **{name: float(getattr(v, name)) for name, _, _ in FLOAT_PARAMETERS},
+            **{name: str(getattr(v, name)) for name, _ in STRING_PARAMETERS},
         )
-        self.model = ContactModel(self.surface_triangles, int(self.n_surface_nodes), int(self.n_tool_points), params)
-        self.model.set_tissue_frame(float(self.time), self.tissue_positions, self.tissue_velocities)
-        self._new_frame = False
+        self.model = ContactModel(np.array(v.surface_triangles), int(v.n_surface_nodes), int(v.n_tool_points),
+                                  params)
+        self.model.set_tissue_frame(float(v.time), v.tissue_positions, v.tissue_velocities)
+        self.frame = int(v.tissue_frame)
 
-    def _step_model(self, t: float, dt: float) -> None:
-        if self._new_frame:
-            self.model.set_tissue_frame(t, self.tissue_positions, self.tissue_velocities)
-            self._new_frame = False
-        out = self.model.step(t, dt, self.tool_positions,
-                              self.tool_velocities if self._tool_velocities_given else None)
-        self.tool_force[...] = out.tool_force
-        self.tip_force[...] = out.tip_force
-        self.tissue_contact_force[...] = out.tissue_contact_force
-        self.penetration_depth = float(out.penetration_depth)
-        self.contact_count = int(out.contact_count)
-        self.contact_energy = float(out.contact_energy)
-        self.passivity_energy = float(out.passivity_energy)
+    def step(self, t: float, dt: float) -> None:
+        v = self.values
+        frame = v.tissue_frame
+        if frame != self.frame:
+            self.model.set_tissue_frame(t, v.tissue_positions, v.tissue_velocities)
+            self.frame = frame
+        velocities = v.tool_velocities if v.set_count("tool_velocities") else None
+        out = self.model.step(t, dt, v.tool_positions, velocities)
+        v.tool_force = out.tool_force
+        v.tip_force = out.tip_force
+        v.tissue_contact_force = out.tissue_contact_force
+        v.penetration_depth = out.penetration_depth
+        v.contact_count = int(out.contact_count)
+        v.contact_energy = out.contact_energy
+        v.passivity_energy = out.passivity_energy
 
-    def _publish_outputs(self) -> None:
-        """Outputs are written by ``_step_model``; before the first step they are zero."""
+
+DECLARATION = FmuDeclaration(
+    model_name="Contact",
+    description="Continuous collision detection (AABB tree, spline trajectories), penalty response and penalty "
+                "haptic rendering with a local model of the wall",
+    internal_step=0.001,
+    variables=VARIABLES,
+    adapter=ContactFmu,
+)

@@ -4,7 +4,7 @@ Units SI (m, kg, s, N, Pa); node arrays are (n, 3) float64, flat vectors node-ma
 (x0, y0, z0, x1, ...).  Layers: ``mesh`` (TetMesh, generators, I/O), ``forcefield`` with
 ``precompute``/``materials``/``kernels`` (tensor-mass forces, numba), ``integrators`` (ODE and
 linear solvers, matrix-free), ``model`` (state and ``step(t, dt)``, validation), and the FMU
-wrapper ``fmu`` (not imported here: it needs pythonfmu3).
+declaration ``fmu`` (not imported here: only the FMU build and runtime need it).
 
 Python API
 ----------

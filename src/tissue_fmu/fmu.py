@@ -1,31 +1,22 @@
-"""The Tissue FMU: a thin FMI 3.0 Co-Simulation slave over :class:`tissue_fmu.model.TissueModel`.
+"""The Tissue FMU: its interface, declared once, and the glue to :class:`tissue_fmu.model.TissueModel`.
 
-Every variable is declared once, here; the model does the work. Ports follow DESIGN.md
-section 4. Arrays are ``[n, 3]`` node-major, i.e. flat ``x0, y0, z0, x1, ...`` on the wire.
+Ports follow DESIGN.md section 4. Arrays are ``[n, 3]`` node-major, i.e. flat ``x0, y0, z0, x1, ...``
+on the wire.
 
 Array sizes depend on the mesh, so they are structural parameters (``n_surface_nodes``,
 ``n_surface_triangles``) whose start values are those of the default AAA mesh. A user who
-changes the mesh sizes or gives a mesh file sets them to the counts of that mesh; the FMU checks
-them when it leaves initialization mode and names the right values when they do not match
-(``len(aaa_mesh(...).surface()[0])`` and ``len(aaa_mesh(...).surface()[1])`` give them without an FMU).
+changes the mesh sizes or gives a mesh file sets them (in Configuration Mode) to the counts of
+that mesh; the FMU checks them when it builds the model and names the right values when they do
+not match (``len(aaa_mesh(...).surface()[0])`` and ``len(aaa_mesh(...).surface()[1])`` give them
+without an FMU).
 """
 from __future__ import annotations
 
 import numpy as np
-from pythonfmu3 import (
-    Fmi3Causality,
-    Fmi3Slave,
-    Fmi3Variability,
-    Float64,
-    Int32,
-    String,
-)
 
-from ._fmi_support import GuardedSlaveMixin
+from ._fmi import FmuDeclaration, calculated, input_port, output, parameter, structural
 from .mesh import aaa_mesh, load_mesh
 from .model import TissueModel, TissueParameters
-
-C, V = Fmi3Causality, Fmi3Variability
 
 #: Mesh sizes of the built-in AAA generator exposed as parameters, with their defaults.
 AAA_SIZES = dict(aorta_radius=0.010, aneurysm_radius=0.025, aneurysm_length=0.060,
@@ -38,133 +29,113 @@ def _default_surface_counts() -> tuple[int, int]:
     return int(nodes.shape[0]), int(triangles.shape[0])
 
 
-class TissueSlave(GuardedSlaveMixin, Fmi3Slave):
-    """Extended Tensor-Mass Model of the aneurysm wall (Tissue FMU)."""
+_defaults = TissueParameters()
+_n_nodes, _n_triangles = _default_surface_counts()
+PER_NODE = ("n_surface_nodes", 3)
 
-    forwarded_loggers = (__name__.rsplit(".", 1)[0],)  # this package, under whatever name it was imported
+VARIABLES = (
+    parameter("young_modulus", float(_defaults.young_modulus), "Young's modulus (small-strain); AAA wall 1.044 MPa",
+              "Pa"),
+    parameter("poisson_ratio", float(_defaults.poisson_ratio), "Poisson ratio in (-1, 0.5)"),
+    parameter("density", float(_defaults.density), "mass density", "kg/m3"),
+    parameter("viscosity", float(_defaults.viscosity), "Kelvin-Voigt viscosity of the viscous tensor (0: off)",
+              "Pa.s"),
+    parameter("cg_tolerance", float(_defaults.cg_tolerance), "relative residual of the implicit Krylov solve"),
+    parameter("nonlinear_strain_threshold", float(_defaults.nonlinear_strain_threshold),
+              "Green strain above which ETMM corrects an element"),
+    parameter("active_radius", 0.0, "radius of the active region around active_center (<= 0: whole mesh)", "m"),
+    parameter("active_center", np.zeros(3), "centre of the active region", "m", shape=(3,)),
+    parameter("law", str(_defaults.law), "material law: linear, etmm or hyperelastic"),
+    parameter("integrator", str(_defaults.integrator), "implicit (backward Euler + CG) or explicit (symplectic Euler)"),
+    parameter("clamp", ",".join(_defaults.clamp), "comma-separated node sets held at rest"),
+    parameter("mesh_file", "", "tetrahedral mesh file (meshio format); empty: built-in AAA generator"),
+    parameter("substeps", 0, "explicit substeps per internal step (0: automatic)"),
+    parameter("cg_max_iterations", int(_defaults.cg_max_iterations), "maximum Krylov iterations"),
+    *(parameter(name, value, f"AAA generator: {name.replace('_', ' ')}", "m") for name, value in AAA_SIZES.items()),
+    *(parameter(name, value, f"AAA generator: {name.replace('_', ' ')} element count")
+      for name, value in AAA_RESOLUTION.items()),
+    structural("n_surface_nodes", _n_nodes, "surface nodes of the mesh (array size)"),
+    structural("n_surface_triangles", _n_triangles, "surface triangles of the mesh (array size)"),
+    input_port("contact_force", "nodal contact forces on the surface nodes", "N", shape=PER_NODE),
+    output("surface_positions", "positions of the surface nodes", "m", shape=PER_NODE),
+    output("surface_velocities", "velocities of the surface nodes", "m/s", shape=PER_NODE),
+    calculated("surface_triangles", "surface triangles (indices into the surface nodes, outward)",
+               shape=("n_surface_triangles", 3), type="Int32"),
+    output("frame", "tissue frames computed (internal steps): changes exactly when the outputs are new",
+           type="Int32"),
+    output("strain_energy", "elastic strain energy", "J"),
+    output("kinetic_energy", "kinetic energy", "J"),
+    output("max_strain", "largest principal Green strain magnitude"),
+    output("nonlinear_fraction", "fraction of active elements that paid for the non-linear correction"),
+    output("solver_residual", "relative residual of the last implicit solve"),
+    output("critical_time_step", "explicit stability limit of the current mesh and material", "s"),
+    output("solver_iterations", "iterations of the last implicit solve (substeps when explicit)", type="Int32"),
+)
 
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        self._declare_basics("Extended Tensor-Mass Model of an abdominal aortic aneurysm wall "
-                             "(linear tensor-mass + non-linear and viscous tensors)", 1.0 / 30.0)
-        self.model: TissueModel | None = None
 
-        defaults = TissueParameters()
-        self.young_modulus = defaults.young_modulus
-        self.poisson_ratio = defaults.poisson_ratio
-        self.density = defaults.density
-        self.viscosity = defaults.viscosity
-        self.law = defaults.law
-        self.integrator = defaults.integrator
-        self.substeps = 0  # 0 = automatic (smallest stable count)
-        self.cg_tolerance = defaults.cg_tolerance
-        self.cg_max_iterations = defaults.cg_max_iterations
-        self.nonlinear_strain_threshold = defaults.nonlinear_strain_threshold
-        self.clamp = ",".join(defaults.clamp)
-        self.active_radius = 0.0  # <= 0: the whole mesh is active
-        self.active_center = np.zeros(3)
-        self.mesh_file = ""
-        for name, value in {**AAA_SIZES, **AAA_RESOLUTION}.items():
-            setattr(self, name, value)
+def _parameters(v) -> TissueParameters:
+    active = None
+    if v.active_radius > 0:
+        active = (*map(float, v.active_center), float(v.active_radius))
+    clamp = tuple(name.strip() for name in v.clamp.split(",") if name.strip())
+    return TissueParameters(
+        young_modulus=v.young_modulus, poisson_ratio=v.poisson_ratio, density=v.density, viscosity=v.viscosity,
+        law=v.law, integrator=v.integrator, substeps="auto" if v.substeps == 0 else v.substeps,
+        cg_tolerance=v.cg_tolerance, cg_max_iterations=v.cg_max_iterations, clamp=clamp, active_region=active,
+        nonlinear_strain_threshold=v.nonlinear_strain_threshold,
+    )
 
-        fixed = dict(causality=C.parameter, variability=V.fixed)
-        params = [
-            ("young_modulus", "Pa", "Young's modulus (small-strain); AAA wall 1.044 MPa"),
-            ("poisson_ratio", None, "Poisson ratio in (-1, 0.5)"),
-            ("density", "kg/m3", "mass density"),
-            ("viscosity", "Pa.s", "Kelvin-Voigt viscosity of the viscous tensor (0: off)"),
-            ("cg_tolerance", None, "relative residual of the implicit conjugate-gradient solve"),
-            ("nonlinear_strain_threshold", None, "Green strain above which ETMM corrects an element"),
-            ("active_radius", "m", "radius of the active region around active_center (<= 0: whole mesh)"),
-        ]
-        self._register_scalars(params, C.parameter, V.fixed)
-        self._register_array("active_center", (3,), C.parameter, "centre of the active region", "m",
-                             variability=V.fixed)
-        self.register_variable(String("law", **fixed, description="material law: linear, etmm or hyperelastic"))
-        self.register_variable(String("integrator", **fixed, description="implicit (backward Euler + CG) or explicit (symplectic Euler)"))
-        self.register_variable(String("clamp", **fixed, description="comma-separated node sets held at rest"))
-        self.register_variable(String("mesh_file", **fixed, description="tetrahedral mesh file (meshio format); empty: built-in AAA generator"))
-        self.register_variable(Int32("substeps", **fixed, description="explicit substeps per communication step (0: automatic)"))
-        self.register_variable(Int32("cg_max_iterations", **fixed, description="maximum conjugate-gradient iterations"))
-        for name in AAA_SIZES:
-            self.register_variable(Float64(name, **fixed, unit="m", description=f"AAA generator: {name.replace('_', ' ')}"))
-        for name in AAA_RESOLUTION:
-            self.register_variable(Int32(name, **fixed, description=f"AAA generator: {name.replace('_', ' ')} element count"))
-        n_nodes, n_triangles = _default_surface_counts()
-        self._register_structural("n_surface_nodes", n_nodes, "surface nodes of the mesh (array size)")
-        self._register_structural("n_surface_triangles", n_triangles, "surface triangles of the mesh (array size)")
-        per_node = ("n_surface_nodes", 3)
-        self._register_array("contact_force", per_node, C.input, "nodal contact forces on the surface nodes", "N")
-        self._register_array("surface_positions", per_node, C.output, "positions of the surface nodes", "m")
-        self._register_array("surface_velocities", per_node, C.output, "velocities of the surface nodes", "m/s")
-        self._register_array("surface_triangles", ("n_surface_triangles", 3), C.calculatedParameter,
-                             "surface triangles (indices into the surface nodes, outward)",
-                             variability=V.fixed, dtype=np.int32)
 
-        self.strain_energy = 0.0
-        self.kinetic_energy = 0.0
-        self.max_strain = 0.0
-        self.nonlinear_fraction = 0.0
-        self.solver_residual = 0.0
-        self.critical_time_step = 0.0
-        self.solver_iterations = 0
-        self._register_scalars([
-            ("strain_energy", "J", "elastic strain energy"),
-            ("kinetic_energy", "J", "kinetic energy"),
-            ("max_strain", None, "largest principal Green strain magnitude"),
-            ("nonlinear_fraction", None, "fraction of active elements that paid for the non-linear correction"),
-            ("solver_residual", None, "relative residual of the last implicit solve"),
-            ("critical_time_step", "s", "explicit stability limit of the current mesh and material"),
-        ], C.output, V.continuous)
-        self.register_variable(Int32("solver_iterations", causality=C.output, variability=V.discrete,
-                                     description="iterations of the last implicit solve (substeps when explicit)"))
+class TissueFmu:
+    """Builds the tissue model from the parameters and steps it under the contact forces."""
 
-    # -- model delegation -----------------------------------------------------------------------
-    def _parameters(self) -> TissueParameters:
-        active = None
-        if self.active_radius > 0:
-            active = (*map(float, self.active_center), float(self.active_radius))
-        clamp = tuple(name.strip() for name in str(self.clamp).split(",") if name.strip())
-        return TissueParameters(
-            young_modulus=float(self.young_modulus), poisson_ratio=float(self.poisson_ratio),
-            density=float(self.density), viscosity=float(self.viscosity), law=str(self.law),
-            integrator=str(self.integrator), substeps="auto" if int(self.substeps) == 0 else int(self.substeps),
-            cg_tolerance=float(self.cg_tolerance), cg_max_iterations=int(self.cg_max_iterations),
-            clamp=clamp, active_region=active,
-            nonlinear_strain_threshold=float(self.nonlinear_strain_threshold),
-        )
-
-    def _initialize_model(self) -> None:
-        params = self._parameters()
+    def __init__(self, values):
+        self.values = v = values
+        params = _parameters(v)
         params.validate()  # parameter errors before the (slower) mesh work
-        if self.mesh_file:
-            mesh = load_mesh(self.mesh_file)
+        if v.mesh_file:
+            mesh = load_mesh(v.mesh_file)
         else:
-            mesh = aaa_mesh(**{k: float(getattr(self, k)) for k in AAA_SIZES},
-                            **{k: int(getattr(self, k)) for k in AAA_RESOLUTION})
+            mesh = aaa_mesh(**{k: float(getattr(v, k)) for k in AAA_SIZES},
+                            **{k: int(getattr(v, k)) for k in AAA_RESOLUTION})
         model = TissueModel(mesh, params)
-        if (model.n_surface, len(model.surface_triangles)) != (self.n_surface_nodes, self.n_surface_triangles):
+        if (model.n_surface, len(model.surface_triangles)) != (v.n_surface_nodes, v.n_surface_triangles):
             raise ValueError(
                 f"the mesh has {model.n_surface} surface nodes and {len(model.surface_triangles)} surface "
-                f"triangles, but n_surface_nodes = {self.n_surface_nodes} and n_surface_triangles = "
-                f"{self.n_surface_triangles}: set these structural parameters to {model.n_surface} and "
-                f"{len(model.surface_triangles)}"
+                f"triangles, but n_surface_nodes = {v.n_surface_nodes} and n_surface_triangles = "
+                f"{v.n_surface_triangles}: set these structural parameters (in Configuration Mode) to "
+                f"{model.n_surface} and {len(model.surface_triangles)}"
             )
         self.model = model
-        self.surface_triangles[...] = model.surface_triangles
+        v.surface_triangles = model.surface_triangles
+        v.frame = 0
+        self._publish()
 
-    def _step_model(self, t: float, dt: float) -> None:
-        self.model.set_contact_force(self.contact_force)
+    def step(self, t: float, dt: float) -> None:
+        v = self.values
+        self.model.set_contact_force(v.contact_force)
         self.model.step(t, dt)
+        v.frame = v.frame + 1
+        self._publish()
 
-    def _publish_outputs(self) -> None:
-        model = self.model
-        self.surface_positions[...] = model.surface_positions()
-        self.surface_velocities[...] = model.surface_velocities()
-        self.strain_energy = model.strain_energy
-        self.kinetic_energy = model.kinetic_energy
-        self.max_strain = model.max_strain
-        self.nonlinear_fraction = model.nonlinear_fraction
-        self.solver_residual = float(model.solver_residual)
-        self.critical_time_step = model.critical_time_step
-        self.solver_iterations = int(model.solver_iterations)
+    def _publish(self) -> None:
+        model, v = self.model, self.values
+        v.surface_positions = model.surface_positions()
+        v.surface_velocities = model.surface_velocities()
+        v.strain_energy = model.strain_energy
+        v.kinetic_energy = model.kinetic_energy
+        v.max_strain = model.max_strain
+        v.nonlinear_fraction = model.nonlinear_fraction
+        v.solver_residual = float(model.solver_residual)
+        v.critical_time_step = model.critical_time_step
+        v.solver_iterations = int(model.solver_iterations)
+
+
+DECLARATION = FmuDeclaration(
+    model_name="Tissue",
+    description="Extended Tensor-Mass Model of an abdominal aortic aneurysm wall (linear tensor-mass + non-linear "
+                "and viscous tensors)",
+    internal_step=1.0 / 30.0,
+    variables=VARIABLES,
+    adapter=TissueFmu,
+)

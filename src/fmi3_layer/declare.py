@@ -1,0 +1,145 @@
+"""How an FMU of this project declares its interface: one table of variables beside its model.
+
+Each FMU package links this file as ``<package>/_fmi.py`` and declares, in its ``fmu.py``, one
+:class:`FmuDeclaration`: the variables (name, type, causality, variability, unit, description,
+start value, array dimensions) and the class that connects them to the model. Everything else is
+generated from that table: the modelDescription.xml (``fmi3_runtime.model_description``), the
+variable table of the C layer, the start values, and the ``values`` object through which the
+model reads parameters and inputs and writes outputs. Plain Python, no FMI calls, no numpy.
+
+The connecting class (the "adapter") is plain Python:
+
+- ``__init__(self, values)`` builds the model from the parameters (raise ``ValueError`` with a
+  message that names the parameter and the fix) and writes the initial outputs;
+- ``step(self, t, dt)`` advances one internal step of ``dt`` seconds, reading inputs from and
+  writing outputs to the ``values`` it kept;
+- optional ``terminate(self)``.
+
+Its attributes (other than the ``values``) are the model state that fmi3GetFMUState saves, so
+they must survive ``copy.deepcopy`` and ``pickle``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+#: Units used by the project's ports: name -> SI base-unit exponents (DESIGN.md section 4).
+SI_UNITS: dict[str, dict[str, int]] = {
+    "m": dict(m=1),
+    "s": dict(s=1),
+    "N": dict(kg=1, m=1, s=-2),
+    "Pa": dict(kg=1, m=-1, s=-2),
+    "J": dict(kg=1, m=2, s=-2),
+    "kg/m3": dict(kg=1, m=-3),
+    "Pa.s": dict(kg=1, m=-1, s=-1),
+    "m/s": dict(m=1, s=-1),
+    "N/m": dict(kg=1, s=-2),
+    "m/N": dict(kg=-1, s=2),
+    "N.s/m": dict(kg=1, s=-1),
+    "rad": dict(rad=1),
+    "rad/s": dict(rad=1, s=-1),
+    "Hz": dict(s=-1),
+    "N.m2": dict(kg=1, m=3, s=-2),
+}
+
+TYPES = ("Float64", "Int32", "UInt64", "Boolean", "String")
+CAUSALITIES = ("parameter", "calculatedParameter", "structuralParameter", "input", "output", "independent")
+VARIABILITIES = ("constant", "fixed", "tunable", "discrete", "continuous")
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One variable of an FMU. ``shape`` holds ints and names of structural parameters."""
+
+    name: str
+    type: str
+    causality: str
+    variability: str
+    start: Any = None
+    unit: str | None = None
+    description: str = ""
+    shape: tuple = ()
+
+    def __post_init__(self):
+        if self.type not in TYPES:
+            raise ValueError(f"{self.name}: type {self.type!r} is not one of {TYPES}")
+        if self.causality not in CAUSALITIES:
+            raise ValueError(f"{self.name}: causality {self.causality!r} is not one of {CAUSALITIES}")
+        if self.variability not in VARIABILITIES:
+            raise ValueError(f"{self.name}: variability {self.variability!r} is not one of {VARIABILITIES}")
+        if self.unit is not None and self.unit not in SI_UNITS:
+            raise ValueError(f"{self.name}: unit {self.unit!r} is not declared in SI_UNITS")
+        if self.shape and self.type == "String":
+            raise ValueError(f"{self.name}: String arrays are not supported")
+
+    @property
+    def has_start(self) -> bool:
+        """Parameters and inputs carry start values; outputs and calculated parameters do not."""
+        return self.causality in ("parameter", "structuralParameter", "input")
+
+
+def _type_of(value) -> str:
+    if isinstance(value, bool):
+        return "Boolean"
+    if isinstance(value, int):
+        return "Int32"
+    if isinstance(value, str):
+        return "String"
+    return "Float64"
+
+
+def parameter(name: str, start, description: str, unit: str | None = None, *, type: str | None = None,
+              shape: tuple = (), tunable: bool = False) -> Variable:
+    """A parameter, fixed unless ``tunable``; its type follows the start value unless given."""
+    return Variable(name, type or _type_of(start), "parameter", "tunable" if tunable else "fixed", start, unit,
+                    description, tuple(shape))
+
+
+def structural(name: str, start: int, description: str) -> Variable:
+    """A structural parameter (UInt64) that sizes arrays; set in Configuration Mode."""
+    return Variable(name, "UInt64", "structuralParameter", "fixed", int(start), None, description)
+
+
+def input_port(name: str, description: str, unit: str | None = None, *, shape: tuple = (), start=0.0,
+               type: str = "Float64") -> Variable:
+    variability = "continuous" if type == "Float64" else "discrete"
+    return Variable(name, type, "input", variability, start, unit, description, tuple(shape))
+
+
+def output(name: str, description: str, unit: str | None = None, *, shape: tuple = (),
+           type: str = "Float64") -> Variable:
+    variability = "continuous" if type == "Float64" else "discrete"
+    return Variable(name, type, "output", variability, None, unit, description, tuple(shape))
+
+
+def calculated(name: str, description: str, *, shape: tuple = (), type: str = "Float64",
+               unit: str | None = None) -> Variable:
+    """A calculated parameter: computed by the FMU when it is built (e.g. the mesh's triangles)."""
+    return Variable(name, type, "calculatedParameter", "fixed", None, unit, description, tuple(shape))
+
+
+@dataclass(frozen=True)
+class FmuDeclaration:
+    """Everything an FMU of this project is: the modelDescription.xml is generated from it."""
+
+    model_name: str
+    description: str
+    #: the model's own step (fixedInternalStepSize); communication steps are whole multiples of it
+    internal_step: float
+    variables: tuple[Variable, ...]
+    #: the class connecting the values to the model (see the module documentation)
+    adapter: Callable
+    #: simulated time of the default experiment
+    stop_time: float = 1.0
+    version: str = "0.2.0"
+    author: str = "aaa-cosim"
+    extra_units: tuple[str, ...] = field(default=())
+
+    def all_variables(self) -> tuple[Variable, ...]:
+        """The declared variables after the two every FMU has: ``time`` and ``internal_step``."""
+        basics = (
+            Variable("time", "Float64", "independent", "continuous", None, "s", "simulation time"),
+            Variable("internal_step", "Float64", "parameter", "fixed", float(self.internal_step), "s",
+                     "the model's internal step; communication steps must be whole multiples of it"),
+        )
+        return basics + tuple(self.variables)

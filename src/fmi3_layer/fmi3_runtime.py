@@ -1,0 +1,539 @@
+"""The Python side of the project's FMI 3.0 layer (carried in each FMU as resources/fmi3_runtime.py).
+
+The C layer (fmi3Functions.c) owns the FMI state machine and the variable table; this module
+owns the values and the model. Every variable's values live in a numpy array allocated here and
+registered with the C layer (pointer and length), so ``fmi3Get*``/``fmi3Set*`` copy memory in C
+and never enter Python, while the model reads and writes the same memory through
+:class:`Values`. The C layer enters Python only for the calls that change the model:
+initialization, ``fmi3DoStep`` (once per call, whatever the number of internal steps),
+configuration, FMU state, reset and free.
+
+It also writes the modelDescription.xml from an FMU's declaration (:func:`model_description`), so
+the XML, the table and the start values come from one place (``<package>/fmu.py``).
+
+Failures never escape as exceptions from ``do_step`` and ``initialize``: they are logged through
+the FMU's logger callback with the instance name, the call and the simulated time, and reported
+as a status. (A NaN or infinity in an output after a step is caught by the C layer.) Any exception (KeyboardInterrupt included) that escapes elsewhere is turned into
+``fmi3Error`` by the C layer.
+"""
+from __future__ import annotations
+
+import copy
+import ctypes
+import hashlib
+import importlib
+import importlib.util
+import json
+import logging
+import math
+import os
+import pickle
+import sys
+import threading
+import traceback
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+OK, WARNING, DISCARD, ERROR, FATAL = range(5)
+
+#: Codes shared with fmi3Functions.c (T_*, C_*, V_*).
+TYPE_CODES = {"Float64": 1, "Int32": 7, "UInt64": 10, "Boolean": 11, "String": 12}
+CAUSALITY_CODES = {"parameter": 1, "calculatedParameter": 2, "structuralParameter": 3, "input": 4, "output": 5,
+                   "independent": 7}
+VARIABILITY_CODES = {"constant": 1, "fixed": 2, "tunable": 3, "discrete": 4, "continuous": 5}
+DTYPES = {"Float64": np.float64, "Int32": np.int32, "UInt64": np.uint64, "Boolean": np.bool_}
+
+#: No array of an FMU may exceed this (a structural parameter of 10**9 is a typing error).
+MAX_ARRAY_BYTES = 1 << 30
+
+_REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
+                             ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p)
+_COUNTERS = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64)
+_LOG = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_char_p)
+_GET_STRING = ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64)
+_SET_STRING = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_char_p)
+
+
+# ---- the modelDescription.xml ---------------------------------------------------------------------
+def _format_value(variable, value) -> str:
+    if variable.type == "Float64":
+        return " ".join(repr(float(x)) for x in np.ravel(np.asarray(value, dtype=np.float64)))
+    if variable.type == "Boolean":
+        return " ".join("true" if bool(x) else "false" for x in np.ravel(np.asarray(value)))
+    if variable.type == "String":
+        return str(value)
+    return " ".join(str(int(x)) for x in np.ravel(np.asarray(value)))
+
+
+def _resolved_start(variable, shape: tuple):
+    """The start value of ``variable`` for ``shape`` (resolved dimensions), or None."""
+    start = variable.start
+    if callable(start):
+        start = start()
+    if start is None:
+        return None
+    if not shape:
+        return start
+    array = np.asarray(start)
+    size = int(np.prod(shape))
+    if array.size == size:
+        return array.reshape(shape)
+    if array.size == 1:
+        return np.full(shape, array.ravel()[0])
+    return None
+
+
+def declared_shape(variable, variables_by_name: dict) -> tuple:
+    """Dimensions with each structural parameter replaced by its start value."""
+    return tuple(int(variables_by_name[d].start) if isinstance(d, str) else int(d) for d in variable.shape)
+
+
+def instantiation_token(declaration, source_digest: str) -> str:
+    """A token that changes with the declaration and with the package's source code."""
+    text = repr([(v.name, v.type, v.causality, v.variability, v.shape, v.unit) for v in declaration.all_variables()])
+    digest = hashlib.sha256((text + source_digest + declaration.version).encode()).hexdigest()
+    return "{%s-%s-%s-%s-%s}" % (digest[:8], digest[8:12], digest[12:16], digest[16:20], digest[20:32])
+
+
+def model_description(declaration, model_identifier: str, token: str, generation_date: str) -> str:
+    """modelDescription.xml of an FMU declared by ``declaration`` (see declare.py)."""
+    from_decl = declaration.all_variables()
+    by_name = {v.name: v for v in from_decl}
+    refs = {v.name: vr for vr, v in enumerate(from_decl)}
+    units = sorted({v.unit for v in from_decl if v.unit} | set(declaration.extra_units))
+    si = sys.modules[type(declaration).__module__].SI_UNITS
+    lines = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        '<fmiModelDescription fmiVersion="3.0" modelName=%s instantiationToken=%s description=%s author=%s '
+        'version=%s generationTool="aaa-cosim FMI layer" generationDateAndTime=%s variableNamingConvention="flat">'
+        % (quoteattr(declaration.model_name), quoteattr(token), quoteattr(declaration.description),
+           quoteattr(declaration.author), quoteattr(declaration.version), quoteattr(generation_date)),
+        '  <CoSimulation modelIdentifier=%s canHandleVariableCommunicationStepSize="false" '
+        'fixedInternalStepSize="%r" canGetAndSetFMUState="true" canSerializeFMUState="true" '
+        'canBeInstantiatedOnlyOncePerProcess="false" hasEventMode="false" providesIntermediateUpdate="false" '
+        'mightReturnEarlyFromDoStep="false"/>' % (quoteattr(model_identifier), float(declaration.internal_step)),
+    ]
+    if units:
+        lines.append("  <UnitDefinitions>")
+        for unit in units:
+            exponents = " ".join(f'{k}="{e}"' for k, e in si[unit].items())
+            lines.append(f"    <Unit name={quoteattr(unit)}><BaseUnit {exponents}/></Unit>")
+        lines.append("  </UnitDefinitions>")
+    lines += [
+        "  <LogCategories>",
+        '    <Category name="logStatusError" description="errors: what failed, where and how to fix it"/>',
+        '    <Category name="logStatusWarning" description="warnings of the model (e.g. large strain)"/>',
+        '    <Category name="logEvents" description="information"/>',
+        "  </LogCategories>",
+        '  <DefaultExperiment startTime="0.0" stopTime="%r" stepSize="%r"/>'
+        % (float(declaration.stop_time), float(declaration.internal_step)),
+        "  <ModelVariables>",
+    ]
+    for vr, v in enumerate(from_decl):
+        attributes = [f"name={quoteattr(v.name)}", f'valueReference="{vr}"', f'causality="{v.causality}"',
+                      f'variability="{v.variability}"']
+        if v.description:
+            attributes.append(f"description={quoteattr(v.description)}")
+        if v.causality in ("parameter", "structuralParameter"):
+            attributes.append('initial="exact"')
+        elif v.causality == "calculatedParameter":
+            attributes.append('initial="calculated"')
+        if v.unit and v.type == "Float64":
+            attributes.append(f"unit={quoteattr(v.unit)}")
+        children = []
+        for d in v.shape:
+            children.append(f'<Dimension valueReference="{refs[d]}"/>' if isinstance(d, str)
+                            else f'<Dimension start="{int(d)}"/>')
+        start = _resolved_start(v, declared_shape(v, by_name)) if v.has_start else None
+        if v.has_start and start is None:
+            raise ValueError(f"{declaration.model_name}.{v.name}: a {v.causality} needs a start value")
+        if start is not None and v.type == "String":
+            children.insert(0, f"<Start value={quoteattr(str(start))}/>")
+        elif start is not None:
+            attributes.append(f"start={quoteattr(_format_value(v, start))}")
+        head = f"    <{v.type} " + " ".join(attributes)
+        lines.append(head + ("/>" if not children else ">" + "".join(children) + f"</{v.type}>"))
+    lines.append("  </ModelVariables>")
+    lines.append("  <ModelStructure>")
+    for vr, v in enumerate(from_decl):
+        if v.causality == "output":
+            lines.append(f'    <Output valueReference="{vr}"/>')
+    for vr, v in enumerate(from_decl):
+        if v.causality in ("output", "calculatedParameter"):
+            lines.append(f'    <InitialUnknown valueReference="{vr}"/>')
+    lines.append("  </ModelStructure>")
+    lines.append("</fmiModelDescription>")
+    return "\n".join(lines) + "\n"
+
+
+# ---- values shared with the C layer -------------------------------------------------------------------
+class Values:
+    """The FMU's variables as attributes: scalars as Python numbers, arrays as numpy views of the
+    buffers the C layer reads and writes, strings as ``str``. Assigning writes into the buffer.
+
+    The 1 kHz path goes through here several times per step, so each name maps straight to its
+    buffer (rebound whenever the runtime reallocates buffers)."""
+
+    __slots__ = ("_instance", "_arrays", "_scalars")
+
+    def __init__(self, instance: "RuntimeInstance"):
+        object.__setattr__(self, "_instance", instance)
+        object.__setattr__(self, "_arrays", {})
+        object.__setattr__(self, "_scalars", {})
+
+    def _rebind(self) -> None:
+        instance = self._instance
+        arrays, scalars = {}, {}
+        for vr, v in enumerate(instance.variables):
+            if v.type == "String":
+                continue
+            if v.shape:
+                arrays[v.name] = instance.views[vr]
+            else:  # a memoryview reads and writes a Python number several times faster than numpy
+                scalars[v.name] = memoryview(instance.buffers[vr])
+        object.__setattr__(self, "_arrays", arrays)
+        object.__setattr__(self, "_scalars", scalars)
+
+    def __getattribute__(self, name):
+        # __getattribute__, not __getattr__: a failed normal lookup first raises AttributeError,
+        # which alone costs about a microsecond per access
+        scalar = _scalars_of(self).get(name)
+        if scalar is not None:
+            return scalar[0]
+        array = _arrays_of(self).get(name)
+        if array is not None:
+            return array
+        try:
+            return object.__getattribute__(self, name)
+        except AttributeError:
+            pass
+        instance = _instance_of(self)
+        vr = instance.references.get(name)
+        if vr is None:
+            raise AttributeError(f"{instance.model_name} has no variable {name!r}") from None
+        return instance.read(vr)
+
+    def __setattr__(self, name, value):
+        scalar = _scalars_of(self).get(name)
+        if scalar is not None:
+            scalar[0] = value
+            return
+        array = _arrays_of(self).get(name)
+        if array is not None:
+            array[...] = value
+            return
+        instance = _instance_of(self)
+        vr = instance.references.get(name)
+        if vr is None:
+            raise AttributeError(f"{instance.model_name} has no variable {name!r}")
+        instance.write(vr, value)
+
+    def set_count(self, name: str) -> int:
+        """How often the importer has set ``name`` (e.g. to tell whether an optional input is used)."""
+        instance = self._instance
+        return int(instance.set_counts[instance.references[name]])
+
+    def __deepcopy__(self, memo):  # the values are saved with the buffers, not with the model
+        return self
+
+    def __reduce__(self):
+        raise TypeError("Values are not part of the model state")
+
+
+_scalars_of = Values._scalars.__get__
+_arrays_of = Values._arrays.__get__
+_instance_of = Values._instance.__get__
+
+
+class _Snapshot:
+    """An FMU state: every buffer, the strings, the set counters and the adapter's attributes."""
+
+    def __init__(self, buffers, strings, set_counts, adapter_class, adapter_state, values_attributes):
+        self.buffers = buffers
+        self.strings = strings
+        self.set_counts = set_counts
+        self.adapter_class = adapter_class
+        self.adapter_state = adapter_state
+        self.values_attributes = values_attributes
+
+
+class _Router(logging.Handler):
+    """Forwards a package's warnings to the FMU instance whose call is running in this thread."""
+
+    def __init__(self):
+        super().__init__(level=logging.WARNING)
+        self.current = threading.local()
+
+    def emit(self, record):
+        instance = getattr(self.current, "instance", None)
+        if instance is None:
+            return
+        try:
+            status = ERROR if record.levelno >= logging.ERROR else WARNING
+            instance.log(status, f"{record.name}: {record.getMessage()}")
+            if status == WARNING:
+                instance.warnings += 1
+        except Exception:  # logging must never fail a call
+            pass
+
+
+class RuntimeInstance:
+    """One FMU instance: buffers registered with the C layer, the values, the adapter (model)."""
+
+    def __init__(self, declaration, instance_name: str, c_instance: int, callbacks, router: _Router):
+        self.declaration = declaration
+        self.model_name = declaration.model_name
+        self.instance_name = instance_name
+        self.variables = declaration.all_variables()
+        self.references = {v.name: vr for vr, v in enumerate(self.variables)}
+        self._c = ctypes.c_void_p(c_instance)
+        self._register, counters, self._log, self._get_string, self._set_string = callbacks
+        self._router = router
+        self.buffers: list[np.ndarray | None] = [None] * len(self.variables)
+        self.views: list[np.ndarray | None] = [None] * len(self.variables)
+        self.values = Values(self)
+        self.set_counts = np.zeros(len(self.variables), dtype=np.uint64)
+        counters(self._c, self.set_counts.ctypes.data, len(self.variables))
+        self.adapter = None
+        self.warnings = 0
+        self._allocate(reset=True)
+
+    # -- buffers ------------------------------------------------------------------------------------
+    def shape_of(self, variable) -> tuple:
+        shape = []
+        for d in variable.shape:
+            shape.append(int(self.buffers[self.references[d]][0]) if isinstance(d, str) else int(d))
+        return tuple(shape)
+
+    def _allocate(self, reset: bool) -> None:
+        """(Re)allocate the buffers whose size changed (all of them when ``reset``) and register them."""
+        for vr, v in enumerate(self.variables):
+            if v.type == "String":
+                if reset or self.buffers[vr] is None:
+                    self._register(self._c, vr, TYPE_CODES[v.type], CAUSALITY_CODES[v.causality],
+                                   VARIABILITY_CODES[v.variability], None, 1, v.name.encode())
+                    self._set_string(self._c, vr, 0, str(v.start if v.start is not None else "").encode())
+                    self.buffers[vr] = np.zeros(0)  # marks "registered"
+                continue
+            shape = self.shape_of(v)
+            size = int(np.prod(shape)) if shape else 1
+            dtype = DTYPES[v.type]
+            current = self.buffers[vr]
+            if not reset and current is not None and current.size == size:
+                continue
+            nbytes = size * np.dtype(dtype).itemsize
+            if nbytes > MAX_ARRAY_BYTES:
+                raise ValueError(
+                    f"{v.name} would need {nbytes / 2**30:.1f} GiB ({' x '.join(map(str, shape))} values): check "
+                    f"the structural parameters {', '.join(d for d in v.shape if isinstance(d, str))}")
+            buffer = np.zeros(size, dtype=dtype)
+            start = _resolved_start(v, shape) if v.causality != "independent" else None
+            if start is not None:
+                buffer[:] = np.ravel(np.asarray(start)).astype(dtype)
+            self.buffers[vr] = buffer
+            self.views[vr] = buffer.reshape(shape) if shape else buffer
+            status = self._register(self._c, vr, TYPE_CODES[v.type], CAUSALITY_CODES[v.causality],
+                                    VARIABILITY_CODES[v.variability], buffer.ctypes.data, size, v.name.encode())
+            if status != 0:
+                raise MemoryError(f"the FMI layer could not register {v.name}")
+        self.values._rebind()
+
+    def read(self, vr: int):
+        v = self.variables[vr]
+        if v.type == "String":
+            raw = self._get_string(self._c, vr, 0)
+            return raw.decode() if raw is not None else ""
+        if v.shape:
+            return self.views[vr]
+        return self.buffers[vr][0].item()
+
+    def write(self, vr: int, value) -> None:
+        v = self.variables[vr]
+        if v.type == "String":
+            self._set_string(self._c, vr, 0, str(value).encode())
+        elif v.shape:
+            self.views[vr][...] = value
+        else:
+            self.buffers[vr][0] = value
+
+    # -- logging ---------------------------------------------------------------------------------------
+    def log(self, status: int, message: str) -> None:
+        self._log(self._c, status, f"{self.model_name} instance '{self.instance_name}': {message}".encode())
+
+    def _fail(self, call: str, exc: BaseException) -> None:
+        reason = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+        if os.environ.get("AAA_COSIM_FMU_TRACEBACK"):  # for the FMU's developers
+            reason += "\n" + "".join(traceback.format_exception(exc))
+        self.log(ERROR, f"{call} failed: {reason}")
+
+    # -- calls from the C layer -------------------------------------------------------------------------
+    def configure(self) -> None:
+        for vr, v in enumerate(self.variables):
+            if v.causality == "structuralParameter" and int(self.buffers[vr][0]) > 10**9:
+                raise ValueError(f"{v.name} = {int(self.buffers[vr][0])} is not a plausible array size")
+        self._allocate(reset=False)
+        self.adapter = None
+
+    def initialize(self, start_time: float) -> float:
+        """Build the model from the parameters; its internal step, or -1 when it failed (logged)."""
+        self._router.current.instance = self
+        try:
+            step = float(self.buffers[self.references["internal_step"]][0])
+            if not (math.isfinite(step) and step > 0):
+                raise ValueError(f"internal_step must be a positive number of seconds (got {step})")
+            self.adapter = None
+            self.buffers[self.references["time"]][0] = start_time
+            self.adapter = self.declaration.adapter(self.values)
+            return step
+        except BaseException as exc:
+            self._fail("fmi3ExitInitializationMode (building the model)", exc)
+            self.adapter = None
+            return -1.0
+        finally:
+            self._router.current.instance = None
+
+    def do_step(self, t: float, h: float, substeps: int) -> tuple[int, int]:
+        """Advance ``substeps`` internal steps of ``h / substeps``; (status, steps completed)."""
+        adapter = self.adapter
+        dt = h / substeps
+        self.warnings = 0
+        self._router.current.instance = self
+        done = 0
+        try:
+            for k in range(substeps):
+                adapter.step(t + k * dt if k else t, dt)
+                done += 1
+        except BaseException as exc:
+            self._fail(f"fmi3DoStep(t = {t:.9g}, h = {h:.9g}) at t = {t + done * dt:.9g}", exc)
+            return ERROR, done
+        finally:
+            self._router.current.instance = None
+        self.buffers[self.references["time"]][0] = t + h
+        return (WARNING if self.warnings else OK), done
+
+    def terminate(self) -> None:
+        terminate = getattr(self.adapter, "terminate", None)
+        if terminate is not None:
+            terminate()
+
+    def reset(self) -> None:
+        self.adapter = None
+        self.buffers = [None] * len(self.variables)
+        self.views = [None] * len(self.variables)
+        self.set_counts[:] = 0
+        self._allocate(reset=True)
+
+    def free(self) -> None:
+        self.adapter = None
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:
+                pass
+
+    # -- FMU state ----------------------------------------------------------------------------------------
+    def get_state(self) -> _Snapshot:
+        strings = {vr: self.read(vr) for vr, v in enumerate(self.variables) if v.type == "String"}
+        buffers = [None if v.type == "String" else self.buffers[vr].copy() for vr, v in enumerate(self.variables)]
+        if self.adapter is None:
+            return _Snapshot(buffers, strings, self.set_counts.copy(), None, None, ())
+        state = {k: v for k, v in vars(self.adapter).items() if not isinstance(v, Values)}
+        values_attributes = tuple(k for k, v in vars(self.adapter).items() if isinstance(v, Values))
+        return _Snapshot(buffers, strings, self.set_counts.copy(), type(self.adapter), copy.deepcopy(state),
+                         values_attributes)
+
+    def set_state(self, snapshot: _Snapshot) -> None:
+        for vr, v in enumerate(self.variables):  # sizes first: they size the other buffers
+            if v.causality == "structuralParameter":
+                self.buffers[vr][:] = snapshot.buffers[vr]
+        self._allocate(reset=False)
+        for vr, v in enumerate(self.variables):
+            if v.type == "String":
+                self.write(vr, snapshot.strings[vr])
+            else:
+                self.buffers[vr][:] = snapshot.buffers[vr]
+        self.set_counts[:] = snapshot.set_counts
+        if snapshot.adapter_class is None:
+            self.adapter = None
+            return
+        adapter = snapshot.adapter_class.__new__(snapshot.adapter_class)
+        adapter.__dict__.update(copy.deepcopy(snapshot.adapter_state))
+        for name in snapshot.values_attributes:
+            setattr(adapter, name, self.values)
+        self.adapter = adapter
+
+    def serialize(self, snapshot: _Snapshot) -> bytes:
+        # plain data around the model's own objects (pickled by their package's stable name)
+        return pickle.dumps((self.model_name, dict(vars(snapshot))), protocol=pickle.HIGHEST_PROTOCOL)
+
+    def deserialize(self, data: bytes) -> _Snapshot:
+        model_name, fields = pickle.loads(data)
+        if model_name != self.model_name:
+            raise ValueError(f"this serialized state is of {model_name}, not of {self.model_name}")
+        snapshot = _Snapshot(**fields)
+        if len(snapshot.buffers) != len(self.variables):
+            raise ValueError("this serialized state is from another build of the FMU (different variables)")
+        return snapshot
+
+
+# ---- instantiation ------------------------------------------------------------------------------------
+_routers: dict[str, _Router] = {}
+_tokens: dict[str, str] = {}  # stable module name -> token of the build loaded under it
+
+
+def _load_package(resources: Path, unique: str, package: str):
+    """Import the FMU's package from its resources under ``unique`` (never a copy the host has)."""
+    module = sys.modules.get(unique)
+    if module is not None:
+        return module
+    package_dir = resources / package
+    cache_spec = importlib.util.spec_from_file_location(unique + "__numba_cache", resources / "numba_cache.py")
+    cache = importlib.util.module_from_spec(cache_spec)
+    cache_spec.loader.exec_module(cache)
+    cache.enable_stable_numba_cache(package_dir, unique)
+    spec = importlib.util.spec_from_file_location(unique, package_dir / "__init__.py",
+                                                  submodule_search_locations=[str(package_dir)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[unique] = module
+    try:
+        spec.loader.exec_module(module)
+        # Importers may delete the extraction folder while the process lives on and instantiates
+        # the FMU again: import every module now so nothing is looked up there later.
+        for path in sorted(package_dir.glob("*.py")):
+            if path.stem != "__init__":
+                importlib.import_module(unique + "." + path.stem)
+    except BaseException:
+        for name in [n for n in sys.modules if n == unique or n.startswith(unique + ".")]:
+            del sys.modules[name]
+        raise
+    return module
+
+
+def instantiate(resources: str, model_identifier: str, token: str, started_interpreter: bool, instance_name: str,
+                c_instance: int, register: int, counters: int, log: int, get_string: int, set_string: int):
+    resources = Path(resources)
+    meta = json.loads((resources / "fmu.json").read_text())
+    if token != meta["instantiation_token"]:
+        raise ValueError(f"instantiationToken {token!r} does not match this FMU's {meta['instantiation_token']!r}: "
+                         "the modelDescription.xml and the resources are from different builds")
+    # A stable name (states serialized by one process load in another, numba's cache refers to
+    # it); another build of the same FMU in this process gets a name of its own.
+    unique = f"{model_identifier}_{meta['package']}"
+    loaded = _tokens.setdefault(unique, token)
+    if loaded != token:
+        unique = f"{unique}_{''.join(c for c in token if c.isalnum())[:16]}"
+    package = _load_package(resources, unique, meta["package"])
+    module_name, _, attribute = meta["declaration"].partition(":")
+    declaration = getattr(importlib.import_module(f"{unique}.{module_name}"), attribute)
+    router = _routers.get(unique)
+    if router is None:
+        router = _routers[unique] = _Router()
+        package_logger = logging.getLogger(package.__name__)
+        package_logger.addHandler(router)
+        # the importer hears the messages through the FMI log; not a second time from its root logger
+        package_logger.propagate = False
+    callbacks = (_REGISTER(register), _COUNTERS(counters), _LOG(log), _GET_STRING(get_string),
+                 _SET_STRING(set_string))
+    return RuntimeInstance(declaration, instance_name, c_instance, callbacks, router)

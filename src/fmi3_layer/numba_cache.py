@@ -1,0 +1,64 @@
+"""A numba cache that survives a new extraction of an FMU (carried in each FMU's resources).
+
+Importers extract an FMU to a new temporary folder on every load, and numba's own cache is keyed
+by the source file's path, so every load would compile the kernels again (seconds per instance).
+The FMI runtime enables this before it imports the FMU's package.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+
+def enable_stable_numba_cache(package_dir, module_name: str) -> None:
+    """Let numba cache the kernels of an extracted FMU across loads.
+
+    Importers extract an FMU to a new temporary folder on every load, and numba's own cache is
+    keyed by the source file's path, so every load would compile the kernels again (seconds per
+    instance). This adds a cache locator, for source files inside ``package_dir`` only, keyed by
+    the file's content and by ``module_name``, the name the package is imported under (numba's
+    cached code refers to its module by name): ``$AAA_COSIM_NUMBA_CACHE`` or
+    ``~/.cache/aaa-cosim/numba``. Where that
+    folder cannot be written, numba falls back to its usual locators. Must run before the
+    package's kernels are imported (the FMI runtime does that).
+    """
+    try:
+        from numba.core import caching
+    except ImportError:  # numba missing: the model import will report it
+        return
+    package_dir = os.path.abspath(str(package_dir))
+    root = Path(os.environ.get("AAA_COSIM_NUMBA_CACHE", Path.home() / ".cache" / "aaa-cosim" / "numba"))
+    marker = f"_aaa_cosim_locator_{hashlib.sha1(package_dir.encode()).hexdigest()[:12]}"
+    if getattr(caching, marker, False):
+        return
+
+    class ContentAddressedLocator(caching._CacheLocator):
+        def __init__(self, py_func, py_file):
+            digest = hashlib.sha256(Path(py_file).read_bytes()).hexdigest()[:24]
+            self._digest = digest
+            self._lineno = py_func.__code__.co_firstlineno
+            self._path = root / f"{module_name}-{Path(py_file).stem}-{digest}"
+
+        def get_cache_path(self):
+            return str(self._path)
+
+        def get_source_stamp(self):
+            return self._digest
+
+        def get_disambiguator(self):
+            return str(self._lineno)
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if not os.path.abspath(py_file).startswith(package_dir + os.sep):
+                return None
+            try:
+                locator = cls(py_func, py_file)
+                locator.ensure_cache_path()
+            except OSError:
+                return None
+            return locator
+
+    caching.CacheImpl._locator_classes.insert(0, ContentAddressedLocator)
+    setattr(caching, marker, True)

@@ -1,1 +1,0 @@
-../fmu_support.py

@@ -1,0 +1,285 @@
+/* A small FMI 3.0 Co-Simulation importer in plain C (no Python in it), for the tests.
+ *
+ * It does what any importer does: extracts the .fmu (a zip), reads modelDescription.xml, loads
+ * binaries/x86_64-linux/<modelIdentifier>.so, instantiates, initializes, steps with inputs, reads
+ * outputs, and frees everything. Optionally it saves the FMU state halfway, serializes and
+ * deserializes it, replays the second half from it and checks the outputs are bit-identical.
+ *
+ * usage: fmu_host FMU WORKDIR STEPS STEP_SIZE [options]
+ *   --input NAME:COUNT=VALUE   set COUNT Float64 values of input NAME to VALUE*(1 + k/STEPS) at step k
+ *   --output NAME:COUNT        print the COUNT Float64 values of NAME after the last step (%.17g)
+ *   --state                    save, serialize, restore and replay the second half
+ * Exit status 0 when every call succeeded.
+ */
+#include <dlfcn.h>
+#include <errno.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <zlib.h>
+
+#include "fmi3Functions.h"
+
+#define MAX_PORTS 8
+
+static void die(const char *message, const char *detail) {
+    fprintf(stderr, "fmu_host: %s%s%s\n", message, detail ? ": " : "", detail ? detail : "");
+    exit(2);
+}
+
+/* ---- zip extraction (stored and deflated entries) ----------------------------------------------- */
+static unsigned read16(const unsigned char *p) { return p[0] | (p[1] << 8); }
+static unsigned long read32(const unsigned char *p) {
+    return (unsigned long)p[0] | ((unsigned long)p[1] << 8) | ((unsigned long)p[2] << 16) | ((unsigned long)p[3] << 24);
+}
+
+static void make_dirs(char *path) {
+    for (char *p = path + 1; *p; p++) {
+        if (*p == '/') {
+            *p = '\0';
+            if (mkdir(path, 0755) != 0 && errno != EEXIST) die("cannot create folder", path);
+            *p = '/';
+        }
+    }
+}
+
+static void extract(const char *zip_path, const char *dest) {
+    FILE *f = fopen(zip_path, "rb");
+    if (!f) die("cannot open", zip_path);
+    fseek(f, 0, SEEK_END);
+    long size = ftell(f);
+    fseek(f, 0, SEEK_SET);
+    unsigned char *zip = malloc((size_t)size);
+    if (!zip || fread(zip, 1, (size_t)size, f) != (size_t)size) die("cannot read", zip_path);
+    fclose(f);
+    long end = size - 22;
+    while (end >= 0 && read32(zip + end) != 0x06054b50UL) end--;
+    if (end < 0) die("not a zip file", zip_path);
+    unsigned entries = read16(zip + end + 10);
+    unsigned long offset = read32(zip + end + 16);
+    for (unsigned i = 0; i < entries; i++) {
+        const unsigned char *c = zip + offset;
+        if (read32(c) != 0x02014b50UL) die("bad central directory", zip_path);
+        unsigned method = read16(c + 10);
+        unsigned long compressed = read32(c + 20), uncompressed = read32(c + 24);
+        unsigned name_length = read16(c + 28), extra_length = read16(c + 30), comment_length = read16(c + 32);
+        unsigned long local = read32(c + 42);
+        char path[4096];
+        snprintf(path, sizeof path, "%s/%.*s", dest, (int)name_length, (const char *)(c + 46));
+        offset += 46 + name_length + extra_length + comment_length;
+        make_dirs(path);
+        if (path[strlen(path) - 1] == '/') continue;
+        const unsigned char *l = zip + local;
+        const unsigned char *data = l + 30 + read16(l + 26) + read16(l + 28);
+        unsigned char *out = malloc(uncompressed ? uncompressed : 1);
+        if (!out) die("out of memory", NULL);
+        if (method == 0) {
+            memcpy(out, data, uncompressed);
+        } else if (method == 8) {
+            z_stream stream;
+            memset(&stream, 0, sizeof stream);
+            stream.next_in = (unsigned char *)data;
+            stream.avail_in = (uInt)compressed;
+            stream.next_out = out;
+            stream.avail_out = (uInt)uncompressed;
+            if (inflateInit2(&stream, -MAX_WBITS) != Z_OK || inflate(&stream, Z_FINISH) != Z_STREAM_END)
+                die("cannot inflate", path);
+            inflateEnd(&stream);
+        } else {
+            die("unsupported zip compression in", path);
+        }
+        FILE *o = fopen(path, "wb");
+        if (!o || fwrite(out, 1, uncompressed, o) != uncompressed) die("cannot write", path);
+        fclose(o);
+        free(out);
+    }
+    free(zip);
+}
+
+/* ---- the model description (just what this host needs) ------------------------------------------ */
+static char *read_text(const char *path) {
+    FILE *f = fopen(path, "rb");
+    if (!f) die("cannot open", path);
+    fseek(f, 0, SEEK_END);
+    long size = ftell(f);
+    fseek(f, 0, SEEK_SET);
+    char *text = malloc((size_t)size + 1);
+    if (!text || fread(text, 1, (size_t)size, f) != (size_t)size) die("cannot read", path);
+    text[size] = '\0';
+    fclose(f);
+    return text;
+}
+
+static void attribute(const char *text, const char *element_start, const char *name, char *value, size_t size) {
+    const char *element = strstr(text, element_start);
+    if (!element) die("model description has no", element_start);
+    char key[128];
+    snprintf(key, sizeof key, " %s=\"", name);
+    const char *end = strchr(element, '>');
+    const char *found = strstr(element, key);
+    if (!found || (end && found > end)) die("model description element has no attribute", name);
+    found += strlen(key);
+    size_t length = strcspn(found, "\"");
+    if (length >= size) die("attribute too long", name);
+    memcpy(value, found, length);
+    value[length] = '\0';
+}
+
+static fmi3ValueReference value_reference(const char *text, const char *variable) {
+    char start[256], value[64];
+    snprintf(start, sizeof start, " name=\"%s\"", variable);
+    const char *element = strstr(text, start);
+    if (!element) die("no variable", variable);
+    while (element > text && *element != '<') element--;
+    char prefix[300];
+    size_t n = strcspn(element, " ");
+    snprintf(prefix, sizeof prefix, "%.*s%s", (int)n, element, start);
+    attribute(element, prefix, "valueReference", value, sizeof value);
+    return (fmi3ValueReference)strtoul(value, NULL, 10);
+}
+
+/* ---- the run --------------------------------------------------------------------------------------- */
+typedef struct {
+    char name[128];
+    size_t count;
+    double value;
+    fmi3ValueReference vr;
+    double *buffer;
+} Port;
+
+static int failures = 0;
+
+static void logger(fmi3InstanceEnvironment env, fmi3Status status, fmi3String category, fmi3String message) {
+    (void)env;
+    fprintf(stderr, "[%s] %s\n", category, message);
+    if (status >= fmi3Error) failures++;
+}
+
+#define LOAD(name) name##TYPE *name = (name##TYPE *)dlsym(library, #name); if (!name) die("missing symbol", #name)
+#define CHECK(call) do { fmi3Status s_ = (call); if (s_ > fmi3Warning) { fprintf(stderr, "fmu_host: %s returned %d\n", #call, s_); exit(3); } } while (0)
+
+int main(int argc, char **argv) {
+    if (argc < 5) die("usage: fmu_host FMU WORKDIR STEPS STEP_SIZE [--input N:C=V] [--output N:C] [--state]", NULL);
+    const char *fmu = argv[1], *work = argv[2];
+    long steps = strtol(argv[3], NULL, 10);
+    double h = strtod(argv[4], NULL);
+    Port inputs[MAX_PORTS], outputs[MAX_PORTS];
+    int n_inputs = 0, n_outputs = 0, with_state = 0;
+    for (int i = 5; i < argc; i++) {
+        if (strcmp(argv[i], "--state") == 0) {
+            with_state = 1;
+        } else if (i + 1 < argc && (strcmp(argv[i], "--input") == 0 || strcmp(argv[i], "--output") == 0)) {
+            int is_input = argv[i][2] == 'i';
+            Port *port = is_input ? &inputs[n_inputs++] : &outputs[n_outputs++];
+            if (n_inputs > MAX_PORTS || n_outputs > MAX_PORTS) die("too many ports", NULL);
+            memset(port, 0, sizeof *port);
+            const char *spec = argv[++i];
+            size_t length = strcspn(spec, ":");
+            snprintf(port->name, sizeof port->name, "%.*s", (int)length, spec);
+            port->count = strtoul(spec + length + 1, NULL, 10);
+            const char *equals = strchr(spec, '=');
+            port->value = equals ? strtod(equals + 1, NULL) : 0.0;
+            port->buffer = calloc(port->count, sizeof(double));
+        } else {
+            die("unknown argument", argv[i]);
+        }
+    }
+    mkdir(work, 0755);
+    extract(fmu, work);
+    char path[4096], token[256], identifier[256];
+    snprintf(path, sizeof path, "%s/modelDescription.xml", work);
+    char *description = read_text(path);
+    attribute(description, "<fmiModelDescription", "instantiationToken", token, sizeof token);
+    attribute(description, "<CoSimulation", "modelIdentifier", identifier, sizeof identifier);
+    for (int i = 0; i < n_inputs; i++) inputs[i].vr = value_reference(description, inputs[i].name);
+    for (int i = 0; i < n_outputs; i++) outputs[i].vr = value_reference(description, outputs[i].name);
+
+    snprintf(path, sizeof path, "%s/binaries/x86_64-linux/%s.so", work, identifier);
+    void *library = dlopen(path, RTLD_NOW | RTLD_LOCAL);
+    if (!library) die("cannot load", dlerror());
+    LOAD(fmi3InstantiateCoSimulation);
+    LOAD(fmi3EnterInitializationMode);
+    LOAD(fmi3ExitInitializationMode);
+    LOAD(fmi3SetFloat64);
+    LOAD(fmi3GetFloat64);
+    LOAD(fmi3DoStep);
+    LOAD(fmi3Terminate);
+    LOAD(fmi3FreeInstance);
+    LOAD(fmi3GetFMUState);
+    LOAD(fmi3SetFMUState);
+    LOAD(fmi3FreeFMUState);
+    LOAD(fmi3SerializedFMUStateSize);
+    LOAD(fmi3SerializeFMUState);
+    LOAD(fmi3DeserializeFMUState);
+
+    char resources[4096];
+    snprintf(resources, sizeof resources, "%s/resources/", work);
+    fmi3Instance instance = fmi3InstantiateCoSimulation("c_host", token, resources, fmi3False, fmi3True, fmi3False,
+                                                        fmi3False, NULL, 0, NULL, logger, NULL);
+    if (!instance) die("fmi3InstantiateCoSimulation failed", NULL);
+    CHECK(fmi3EnterInitializationMode(instance, fmi3False, 0.0, 0.0, fmi3False, 0.0));
+    CHECK(fmi3ExitInitializationMode(instance));
+
+    fmi3FMUState halfway = NULL;
+    long half = steps / 2;
+    double *first_run = NULL;
+    size_t total_out = 0;
+    for (int i = 0; i < n_outputs; i++) total_out += outputs[i].count;
+    for (int pass = 0; pass < (with_state ? 2 : 1); pass++) {
+        for (long k = pass ? half : 0; k < steps; k++) {
+            if (with_state && pass == 0 && k == half) CHECK(fmi3GetFMUState(instance, &halfway));
+            double t = (double)k * h;
+            for (int i = 0; i < n_inputs; i++) {
+                for (size_t j = 0; j < inputs[i].count; j++)
+                    inputs[i].buffer[j] = inputs[i].value * (1.0 + (double)k / (double)steps);
+                CHECK(fmi3SetFloat64(instance, &inputs[i].vr, 1, inputs[i].buffer, inputs[i].count));
+            }
+            fmi3Boolean event = 0, terminate = 0, early = 0;
+            fmi3Float64 last = 0.0;
+            CHECK(fmi3DoStep(instance, t, h, fmi3True, &event, &terminate, &early, &last));
+        }
+        double *values = calloc(total_out ? total_out : 1, sizeof(double));
+        size_t at = 0;
+        for (int i = 0; i < n_outputs; i++) {
+            CHECK(fmi3GetFloat64(instance, &outputs[i].vr, 1, values + at, outputs[i].count));
+            at += outputs[i].count;
+        }
+        if (pass == 0) {
+            first_run = values;
+            at = 0;
+            for (int i = 0; i < n_outputs; i++) {
+                printf("%s", outputs[i].name);
+                for (size_t j = 0; j < outputs[i].count; j++) printf(" %.17g", values[at + j]);
+                printf("\n");
+                at += outputs[i].count;
+            }
+            if (with_state) { /* through the serialized form, as a master that stores states on disk would */
+                size_t size = 0;
+                CHECK(fmi3SerializedFMUStateSize(instance, halfway, &size));
+                fmi3Byte *bytes = malloc(size);
+                CHECK(fmi3SerializeFMUState(instance, halfway, bytes, size));
+                CHECK(fmi3FreeFMUState(instance, &halfway));
+                fmi3FMUState restored = NULL;
+                CHECK(fmi3DeserializeFMUState(instance, bytes, size, &restored));
+                free(bytes);
+                CHECK(fmi3SetFMUState(instance, restored));
+                CHECK(fmi3FreeFMUState(instance, &restored));
+            }
+        } else {
+            int same = memcmp(first_run, values, total_out * sizeof(double)) == 0;
+            printf("state replay: %s\n", same ? "identical" : "DIFFERENT");
+            if (!same) failures++;
+            free(values);
+        }
+    }
+    free(first_run);
+    CHECK(fmi3Terminate(instance));
+    fmi3FreeInstance(instance);
+    dlclose(library);
+    free(description);
+    for (int i = 0; i < n_inputs; i++) free(inputs[i].buffer);
+    for (int i = 0; i < n_outputs; i++) free(outputs[i].buffer);
+    return failures ? 4 : 0;
+}

@@ -1,0 +1,1 @@
+../../../src/fmi3_layer/declare.py

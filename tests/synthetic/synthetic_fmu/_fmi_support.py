@@ -1,1 +1,0 @@
-../../../src/fmu_support.py

@@ -1,0 +1,208 @@
+"""The project's FMI 3.0 layer (src/fmi3_layer) against the standard's rules, on real built FMUs.
+
+- Every FMI call in every state of the Co-Simulation state machine: legal calls succeed, illegal
+  ones return fmi3Error with a logged reason and change nothing.
+- Value references, counts, types and finiteness are checked on every get/set.
+- Communication steps: whole multiples of the internal step, no gaps in time.
+- FMU state: save, run on, restore, run again: bit-identical; the same through serialization
+  into a fresh instance.
+- A Python exception of any kind inside a call (KeyboardInterrupt included) is fmi3Error.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fmpy.fmi1 import FMICallException
+
+from fmu_harness import fmu_instance
+
+H = 0.01  # the synthetic FMUs' internal step
+STATES = ("Instantiated", "Configuration", "Initialization", "Step", "Terminated", "Error")
+
+
+def _enter(fmu, state: str) -> None:
+    """Bring a fresh Echo instance into ``state``."""
+    slave = fmu.slave
+    if state == "Configuration":
+        slave.enterConfigurationMode()
+    elif state == "Initialization":
+        slave.enterInitializationMode()
+    elif state in ("Step", "Terminated", "Error"):
+        if state == "Error":
+            fmu.set("fail_at", 0.0)
+        fmu.initialize()
+        if state == "Terminated":
+            slave.terminate()
+        elif state == "Error":
+            with pytest.raises(FMICallException):
+                slave.doStep(0.0, H)
+
+
+def _calls(fmu):
+    slave = fmu.slave
+    return {
+        "fmi3EnterInitializationMode": lambda: slave.enterInitializationMode(),
+        "fmi3ExitInitializationMode": lambda: slave.exitInitializationMode(),
+        "fmi3EnterConfigurationMode": lambda: slave.enterConfigurationMode(),
+        "fmi3ExitConfigurationMode": lambda: slave.exitConfigurationMode(),
+        "fmi3DoStep": lambda: slave.doStep(0.0, H),
+        "fmi3Terminate": lambda: slave.terminate(),
+        "fmi3Reset": lambda: slave.reset(),
+        "fmi3GetFloat64 (output)": lambda: slave.getFloat64(fmu.vr("last_u")),
+        "fmi3SetFloat64 (input)": lambda: slave.setFloat64(fmu.vr("u"), [1.0]),
+        "fmi3SetBoolean (fixed parameter)": lambda: slave.setBoolean(fmu.vr("flag"), [True]),
+        "fmi3SetUInt64 (structural parameter)": lambda: slave.setUInt64(fmu.vr("n_w"), [2]),
+        "fmi3GetFMUState": lambda: slave.getFMUState(),
+        "fmi3EnterEventMode": lambda: slave.enterEventMode(),
+        "fmi3EnterStepMode": lambda: slave.enterStepMode(),
+    }
+
+
+#: Where each call is legal, from the FMI 3.0 Co-Simulation state machine (this FMU has no Event
+#: Mode; structural parameters are fixed, so no Reconfiguration Mode).
+LEGAL = {
+    "fmi3EnterInitializationMode": {"Instantiated"},
+    "fmi3ExitInitializationMode": {"Initialization"},
+    "fmi3EnterConfigurationMode": {"Instantiated"},
+    "fmi3ExitConfigurationMode": {"Configuration"},
+    "fmi3DoStep": {"Step"},
+    "fmi3Terminate": {"Step"},
+    "fmi3Reset": set(STATES),
+    "fmi3GetFloat64 (output)": {"Configuration", "Initialization", "Step", "Terminated", "Error"},
+    "fmi3SetFloat64 (input)": {"Instantiated", "Initialization", "Step"},
+    "fmi3SetBoolean (fixed parameter)": {"Instantiated", "Initialization"},
+    "fmi3SetUInt64 (structural parameter)": {"Configuration"},
+    "fmi3GetFMUState": {"Instantiated", "Initialization", "Step", "Terminated", "Error"},
+    "fmi3EnterEventMode": set(),
+    "fmi3EnterStepMode": set(),
+}
+
+
+@pytest.mark.parametrize("state", STATES)
+def test_every_call_in_every_state(synthetic_fmus, state):
+    for call in LEGAL:
+        with fmu_instance(synthetic_fmus["Echo"]) as fmu:
+            _enter(fmu, state)
+            before = len(fmu.errors())
+            if state in LEGAL[call]:
+                _calls(fmu)[call]()
+                assert len(fmu.errors()) == before, (call, state, fmu.errors())
+            else:
+                with pytest.raises(FMICallException) as info:
+                    _calls(fmu)[call]()
+                assert info.value.status == 3, (call, state)
+                new = fmu.errors()[before:]
+                assert new, f"{call} in {state} was refused without a reason"
+                assert any(word in new[-1] for word in ("illegal call sequence", "cannot set", "not supported")), new
+                if state == "Step":  # a refused call changed nothing: the instance steps on
+                    fmu.slave.doStep(0.0, H)
+
+
+def test_values_are_checked_on_every_get_and_set(synthetic_fmus):
+    with fmu_instance(synthetic_fmus["Echo"]) as fmu:
+        fmu.initialize()
+        slave = fmu.slave
+        for call, words in [
+            (lambda: slave.getFloat64([9999]), "unknown value reference 9999"),
+            (lambda: slave.getFloat64(fmu.vr("last_v"), nValues=2), "hold 3 value(s), but nValues = 2"),
+            (lambda: slave.getFloat64(fmu.vr("last_k")), "is a Int32, not a Float64"),
+            (lambda: slave.setFloat64(fmu.vr("last_u"), [1.0]), "it is an output"),
+            (lambda: slave.setFloat64(fmu.vr("time"), [1.0]), "independent variable"),
+            (lambda: slave.setFloat64(fmu.vr("u"), [float("nan")]), "only finite numbers"),
+            (lambda: slave.setFloat64(fmu.vr("v"), [1.0, 2.0, 3.0, 4.0]), "hold 3 value(s), but nValues = 4"),
+        ]:
+            with pytest.raises(FMICallException):
+                call()
+            assert words in fmu.errors()[-1], (words, fmu.errors()[-1])
+        fmu.slave.doStep(0.0, H)  # none of that changed the instance
+        assert fmu.get("last_u") == 0.0 and fmu.errors()
+
+
+def test_structural_parameters_resize_arrays_in_configuration_mode(synthetic_fmus):
+    with fmu_instance(synthetic_fmus["Echo"]) as fmu:
+        fmu.set("n_w", 5)  # the harness enters and leaves Configuration Mode
+        fmu.initialize()
+        fmu.slave.setFloat64(fmu.vr("w"), [1.0, 2.0, 3.0, 4.0, 5.0])
+        fmu.slave.doStep(0.0, H)
+        assert fmu.slave.getFloat64(fmu.vr("last_w"), nValues=5) == [1.0, 2.0, 3.0, 4.0, 5.0]
+
+
+def test_communication_steps_are_whole_multiples_without_gaps(synthetic_fmus):
+    with fmu_instance(synthetic_fmus["Echo"]) as fmu:
+        fmu.initialize()
+        fmu.set("u", 2.0)
+        fmu.slave.doStep(0.0, 3 * H)  # three internal steps in one call
+        assert fmu.get("integral_u") == pytest.approx(3 * 2.0 * H, rel=1e-15)
+        assert fmu.get("last_t") == pytest.approx(2 * H, rel=1e-15)
+        fmu.expect_step_error(3 * H, 1.5 * H, "whole multiple")
+        fmu.expect_step_error(4 * H, H, "the FMU is at t = 0.03;")
+        fmu.slave.doStep(3 * H, H)
+
+
+def test_a_keyboard_interrupt_inside_a_step_is_an_error_and_reset_recovers(synthetic_fmus):
+    with fmu_instance(synthetic_fmus["Faulty"]) as fmu:
+        fmu.set("interrupt_at", 0.02)
+        fmu.initialize()
+        fmu.slave.doStep(0.0, H)
+        fmu.slave.doStep(H, H)
+        fmu.expect_step_error(2 * H, H, "KeyboardInterrupt")  # not raised into this process
+        fmu.expect_step_error(2 * H, H, "Error mode", "KeyboardInterrupt")
+        fmu.slave.reset()
+        fmu.initialize()
+        fmu.slave.doStep(0.0, H)
+        assert fmu.get("y") == H
+
+
+def test_two_instances_of_one_fmu_are_independent(synthetic_fmus):
+    with fmu_instance(synthetic_fmus["Echo"], instance_name="a") as a, \
+            fmu_instance(synthetic_fmus["Echo"], instance_name="b") as b:
+        a.initialize()
+        b.initialize()
+        a.set("u", 1.0)
+        b.set("u", -4.0)
+        for k in range(5):
+            a.slave.doStep(k * H, H)
+            b.slave.doStep(k * H, H)
+        assert a.get("integral_u") == pytest.approx(5 * H)
+        assert b.get("integral_u") == pytest.approx(-20 * H)
+
+
+# -- FMU state -------------------------------------------------------------------------------------------
+#: FMU -> (steps before the save, steps after, input, value, outputs compared)
+STATE_CASES = {
+    "Catheter": (40, 60, "tip_force", [0.6, 0.1, 0.0], ["centerline_positions", "bend_angle", "actuator_command"]),
+}
+
+
+def _drive(fmu, name, start, steps):
+    _, _, port, value, outputs = STATE_CASES[name]
+    h = float(fmu.md.coSimulation.fixedInternalStepSize)
+    for k in range(start, start + steps):
+        fmu.slave.setFloat64(fmu.vr(port), list(np.asarray(value) * (1 + 0.01 * k)))
+        fmu.slave.doStep(k * h, h)
+    return {o: np.atleast_1d(fmu.get(o)).copy() for o in outputs}
+
+
+@pytest.mark.parametrize("name", list(STATE_CASES))
+def test_fmu_state_restores_bit_identically(name, catheter_fmu, tmp_path):
+    fmus = {"Catheter": catheter_fmu}
+    before, after = STATE_CASES[name][:2]
+    with fmu_instance(fmus[name]) as fmu:
+        fmu.initialize()
+        _drive(fmu, name, 0, before)
+        state = fmu.slave.getFMUState()
+        first = _drive(fmu, name, before, after)
+        fmu.slave.setFMUState(state)
+        again = _drive(fmu, name, before, after)
+        serialized = fmu.slave.serializeFMUState(state)
+        fmu.slave.freeFMUState(state)
+    for port in first:
+        np.testing.assert_array_equal(again[port], first[port])
+    with fmu_instance(fmus[name], instance_name="fresh") as fresh:  # another instance, from the bytes
+        fresh.initialize()
+        restored = fresh.slave.deserializeFMUState(serialized)
+        fresh.slave.setFMUState(restored)
+        replay = _drive(fresh, name, before, after)
+        fresh.slave.freeFMUState(restored)
+    for port in first:
+        np.testing.assert_array_equal(replay[port], first[port])

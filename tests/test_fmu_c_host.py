@@ -1,0 +1,113 @@
+"""The FMUs in a non-Python importer: tests/c_host/fmu_host.c, compiled here with the system C compiler.
+
+The host has no Python in it: it extracts the .fmu, loads the binary with dlopen, instantiates,
+steps with inputs and reads outputs like any FMI 3.0 importer. The FMU finds the Python library
+recorded at build time by itself (nothing preloaded, no environment variables). Every FMU runs in
+30 fresh processes that must all exit with status 0, and gives the same numbers as in FMPy.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fmu_harness import fmu_instance
+
+HOST_SOURCE = Path(__file__).resolve().parent / "c_host" / "fmu_host.c"
+INCLUDE = Path(__file__).resolve().parent.parent / "src" / "fmi3_layer" / "include"
+RUNS = 30
+
+# name -> (steps, step size, inputs {name: (count, value)}, outputs {name: count})
+CASES = {
+    "Catheter": (300, 0.001, {"insertion": (1, 0.05), "tip_force": (3, 0.3)}, {"tip_position": 3, "bend_angle": 1}),
+    "Contact": (200, 0.001, {"tool_positions": (93, 0.01)}, {"tool_force": 3, "penetration_depth": 1}),
+    "Tissue": (6, 1.0 / 30.0, {"contact_force": (8064, 1e-4)}, {"strain_energy": 1, "kinetic_energy": 1}),
+}
+
+
+@pytest.fixture(scope="module")
+def host(tmp_path_factory) -> Path:
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        pytest.fail("no C compiler on PATH: the non-Python host is compiled at test time (apt-get install gcc)")
+    binary = tmp_path_factory.mktemp("c_host") / "fmu_host"
+    subprocess.run([compiler, "-O1", "-Wall", f"-I{INCLUDE}", str(HOST_SOURCE), "-o", str(binary), "-ldl", "-lz"],
+                   check=True, capture_output=True, text=True)
+    return binary
+
+
+def _arguments(name: str, fmu: Path, work: Path, state: bool = False) -> list[str]:
+    steps, h, inputs, outputs = CASES[name]
+    args = [str(fmu), str(work), str(steps), repr(h)]
+    for port, (count, value) in inputs.items():
+        args += ["--input", f"{port}:{count}={value!r}"]
+    for port, count in outputs.items():
+        args += ["--output", f"{port}:{count}"]
+    return args + (["--state"] if state else [])
+
+
+def _run(host: Path, args: list[str]) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "LD_PRELOAD")}
+    return subprocess.run([str(host), *args], capture_output=True, text=True, timeout=300, env=env)
+
+
+def _outputs(stdout: str) -> dict[str, np.ndarray]:
+    values = {}
+    for line in stdout.splitlines():
+        name, *numbers = line.split()
+        if name != "state":
+            values[name] = np.array([float(x) for x in numbers])
+    return values
+
+
+def _fmpy_outputs(name: str, fmu: Path) -> dict[str, np.ndarray]:
+    """The same input sequence through FMPy in this process."""
+    steps, h, inputs, outputs = CASES[name]
+    with fmu_instance(fmu) as instance:
+        instance.initialize()
+        for k in range(steps):
+            for port, (count, value) in inputs.items():
+                instance.slave.setFloat64(instance.vr(port), [value * (1.0 + k / steps)] * count)
+            instance.slave.doStep(k * h, h)
+        return {port: np.atleast_1d(instance.get(port)) for port in outputs}
+
+
+@pytest.fixture(scope="module")
+def fmus(tissue_fmu, contact_fmu, catheter_fmu):
+    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_runs_in_a_c_host_with_the_numbers_of_fmpy(host, fmus, name, tmp_path):
+    result = _run(host, _arguments(name, fmus[name], tmp_path / "run"))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "logStatusError" not in result.stderr
+    c_values = _outputs(result.stdout)
+    for port, expected in _fmpy_outputs(name, fmus[name]).items():
+        np.testing.assert_array_equal(c_values[port], expected, err_msg=f"{name}.{port}")
+
+
+@pytest.mark.parametrize("name", ["Catheter"])
+def test_state_saved_serialized_and_replayed_bit_identically_in_a_c_host(host, fmus, name, tmp_path):
+    result = _run(host, _arguments(name, fmus[name], tmp_path / "run", state=True))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "state replay: identical" in result.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(CASES))
+def test_thirty_fresh_c_host_processes_exit_normally(host, fmus, name, tmp_path):
+    jobs = [_arguments(name, fmus[name], tmp_path / f"run{k}") for k in range(RUNS)]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = list(pool.map(lambda args: _run(host, args), jobs))
+    failures = [(k, r.returncode, r.stderr[-300:]) for k, r in enumerate(results) if r.returncode != 0]
+    assert failures == []
+    first = _outputs(results[0].stdout)
+    for r in results[1:]:  # and the same numbers every time
+        for port, values in _outputs(r.stdout).items():
+            np.testing.assert_array_equal(values, first[port])
