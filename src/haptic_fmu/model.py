@@ -211,7 +211,7 @@ def _warm_up(interpolation) -> None:
             model.set_tissue_frame(0.01, pos + [0.0, 0.0, 0.001], np.full_like(pos, 0.1),
                                    compliance=W, compliance_nodes=np.arange(4))
             for k in range(3, 6):
-                model.step(k * 1e-3, 1e-3, np.array([[0.003, 0.003, 0.004], [0.003, 0.006, 0.0],
+                model.step(k * 1e-3, 1e-3, np.array([[0.003, 0.003, 0.004], [0.003, 0.004, 0.001],
                                                      [0.003, 0.003, -0.001]]))
 
 
@@ -527,8 +527,10 @@ class ContactModel:
             if count:
                 hit, toi = ccd.vertex_face(queries[:count])
                 self._mark_entries(hit, toi, q_node[:count], q_face[:count], self._local_normals(pos1))
+        c = self.compliance
+        band = c.band if c is not None and c.active else 0.0
         narrow_phase.proximity(pos1, local.velocities, local.triangles, local.node_ptr, local.node_faces,
-                               local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius,
+                               local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius, band,
                                self._inside, self._entry_normal, self._contact_face, self._contact_w,
                                self._contact_n, self._contact_depth, self._contact_rate, self._contact_s,
                                self._contact_point, self._near_dist)
@@ -560,7 +562,7 @@ class ContactModel:
             c.record_steps[c.current] += 1
             if c.active:
                 c.g, c.g_new = c.g_new, c.g
-                rendering_kernels.patch_displacement(c.W, c.g, c.g_applied, c.u)
+                c.band = rendering_kernels.patch_displacement(c.W, c.g, c.g_applied, c.u)
         return result
 
     def _name_patch(self, tool1) -> None:

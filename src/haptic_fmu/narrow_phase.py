@@ -90,7 +90,7 @@ def ccd_candidates(pos0, pos1, tri, node_ptr, node_faces, tool0, tool1, radius, 
 
 
 @njit(cache=True)
-def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, tool_vel, radius,
+def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, tool_vel, radius, band,
               inside, entry_normal, contact_face, contact_w, contact_n, contact_depth, contact_rate,
               contact_s, contact_point, near_dist):
     """Closest facet and contact data of every tool primitive (nodes then segments).
@@ -103,7 +103,10 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
     (> 0), contact_rate (d depth/dt = -(v_tool - v_surface) . n), contact_s (segment parameter of
     the contact, 0 for nodes), contact_point (q); near_dist (n_tool,): distance of each node's
     sphere to its nearest candidate face (negative inside, inf without candidates).
-    Returns the number of contacts.
+    band >= 0: primitives closer than band to their face are reported too, with depth in
+    (-band, 0] (the compliance model's wall may come back by up to its current yielding, so its
+    solve decides those; 0 for the rigid local models: only penetrations).
+    Returns the number of primitives reported.
     """
     n_tool = tool.shape[0]
     for i in range(contact_face.shape[0]):
@@ -155,13 +158,16 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
             # behind the face: penetration measured along the normal (smooth across the facets)
             dist = plane - radius
         near_dist[i] = dist
-        if dist >= 0.0:
+        if dist >= band or (band == 0.0 and dist >= 0.0):
             inside[i] = 0
             continue
-        inside[i] = 1
-        entry_normal[i, 0] = bnx
-        entry_normal[i, 1] = bny
-        entry_normal[i, 2] = bnz
+        if dist < 0.0:
+            inside[i] = 1
+            entry_normal[i, 0] = bnx
+            entry_normal[i, 1] = bny
+            entry_normal[i, 2] = bnz
+        else:
+            inside[i] = 0
         va = vel[tri[best_f, 0]]
         vb = vel[tri[best_f, 1]]
         vc = vel[tri[best_f, 2]]
@@ -212,7 +218,7 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
         if best_f < 0:
             continue
         dist = math.sqrt(best) - radius
-        if dist >= 0.0:
+        if dist >= band or (band == 0.0 and dist >= 0.0):
             continue
         va = vel[tri[best_f, 0]]
         vb = vel[tri[best_f, 1]]

@@ -225,6 +225,7 @@ class WallCompliance:
         self.u = np.zeros(0)
         self.slot = np.zeros(0, np.int64)
         self.active = False
+        self.band = 0.0                 # largest yielding |u| of a node: how far the wall may come back
         self.iterations = 0             # Newton iterations of the last solve (-1: not converged)
         self.unconverged = 0            # diagnostics: solves that hit the iteration cap
         # the named patch (output) and its work arrays
@@ -275,8 +276,9 @@ class WallCompliance:
         self.g = np.ascontiguousarray(last_tissue_force[ids], np.float64).reshape(-1)
         self.g_new = np.zeros(3 * p)
         self.u = np.zeros(3 * p)
+        self.band = 0.0
         if self.active:
-            kernels.patch_displacement(self.W, self.g, self.g_applied, self.u)
+            self.band = kernels.patch_displacement(self.W, self.g, self.g_applied, self.u)
 
     def clear(self) -> None:
         """A frame without compliance: render as hold until the next one."""

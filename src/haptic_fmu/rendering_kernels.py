@@ -52,13 +52,19 @@ def add_displacement(pos, slot, u):
 
 @njit(cache=True)
 def patch_displacement(W, g, g_applied, u):
-    """u = W (g - g_applied) (3p)."""
+    """u = W (g - g_applied) (3p); returns the largest node displacement |u_s| (m)."""
     n = u.shape[0]
     for r in range(n):
         acc = 0.0
         for c in range(n):
             acc += W[r, c] * (g[c] - g_applied[c])
         u[r] = acc
+    largest = 0.0
+    for s in range(n // 3):
+        norm = math.sqrt(u[3 * s] ** 2 + u[3 * s + 1] ** 2 + u[3 * s + 2] ** 2)
+        if norm > largest:
+            largest = norm
+    return largest
 
 
 @njit(cache=True)
