@@ -419,3 +419,31 @@ def test_force_record_equals_the_reported_applied_force():
     recorded, _ = run_multirate(1000.0, "compliance", 800, report_applied=False)
     assert np.abs(reported).max() > 0.5
     np.testing.assert_allclose(recorded, reported, rtol=1e-12, atol=1e-14)
+
+
+def test_damped_onset_rests_the_wall_at_the_tool():
+    """The linear law with damping jumps at first contact (f(0+) = b rate): when the wall can yield
+    the whole depth under less than that, the answer is the wall resting at the tool, depth 0 and
+    f = depth0 / D (Newton cycles there; the Gauss-Seidel fallback with the set-valued law solves it)."""
+    k, b, c, d, dt = 500.0, 2.0, 5e-3, 2e-4, 1e-3
+    tri = np.array([[0, 1, 2]], np.int64)
+    slot = np.array([0, -1, -1], np.int64)
+    W = c * np.eye(3)
+    face, w, n = np.array([0], np.int64), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
+    depth, rate = np.array([d]), np.array([0.5])              # 0.5 m/s into the wall: f(0+) = 1 N > d / c
+    fmag, g_out = np.zeros(1), np.zeros(3)
+    work = (np.zeros(1, np.int64), np.zeros((1, 3)), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1), np.zeros(1),
+            np.zeros(1))
+    iterations = rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3),
+                                                     penalty_kernels.LAW_LINEAR, k, b, 1e-3, dt, 8, 1e-13, fmag,
+                                                     g_out, *work)
+    assert iterations > 8                                     # solved by the fallback
+    assert fmag[0] == pytest.approx(d / c, rel=1e-12) and depth[0] == pytest.approx(0.0, abs=1e-18)
+    assert face[0] == 0                                       # still a contact, at depth 0
+    np.testing.assert_allclose(g_out, [0.0, 0.0, -d / c], rtol=1e-12)
+    # slower: the law's own answer, (k + b/dt) delta + b (rate - d/dt) = (d - delta) / c
+    depth, rate, face = np.array([d]), np.array([0.01]), np.array([0], np.int64)
+    rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3), penalty_kernels.LAW_LINEAR,
+                                        k, b, 1e-3, dt, 8, 1e-13, fmag, g_out, *work)
+    delta = (d / c - b * (0.01 - d / dt)) / (k + b / dt + 1 / c)
+    assert depth[0] == pytest.approx(delta, rel=1e-12) and fmag[0] == pytest.approx((d - delta) / c, rel=1e-12)

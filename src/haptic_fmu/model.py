@@ -84,6 +84,8 @@ class ContactInputError(ValueError):
 
 
 def _is_real(value) -> bool:
+    if type(value) is float:            # the 1 kHz common case, checked cheaply
+        return True
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
@@ -171,6 +173,8 @@ class ContactOutputs:
 
 def _float_array(name, value, n, fix):
     arr = np.asarray(value, dtype=np.float64)
+    if arr.shape == (n, 3) and math.isfinite(float(np.sum(arr))):   # the common case, one reduction
+        return arr
     if arr.size != n * 3:
         raise ContactInputError(
             f"{name} must hold {n} points ({n}x3 = {n * 3} values, flat or (n,3)) (got shape {arr.shape}): {fix}")
@@ -181,8 +185,9 @@ def _float_array(name, value, n, fix):
     return arr
 
 
-#: Newton iterations and relative tolerance of the compliance solve (the linear law needs 1-2).
-COMPLIANCE_MAX_ITERATIONS = 25
+#: Newton iterations (then the Gauss-Seidel fallback) and relative tolerance of the compliance solve
+#: (the linear law needs 1-2 on a fixed contact set).
+COMPLIANCE_MAX_ITERATIONS = 8
 COMPLIANCE_TOLERANCE = 1e-13
 
 _WARMED = set()
@@ -536,34 +541,37 @@ class ContactModel:
                                self._contact_point, self._near_dist)
 
     def _response(self, dt):
-        """Penalty forces: against the rigid local model, or solved against the yielding wall."""
+        """Penalty forces: against the rigid local model, or solved against the yielding wall
+        (one kernel: solve, distribution, the patch's new load and displacement)."""
         p = self.params
         c = self.compliance
         if c is not None and c.active:
-            c.iterations = rendering_kernels.compliance_forces(
+            rendering_kernels.compliance_response(
                 self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
-                self.local.triangles, c.slot, c.W, c.g, self._law, p.stiffness, p.damping, p.penalty_length, dt,
-                COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, c.g_new,
-                c._act, c._Wa, c._D, c._J, c._rhs, c._delta0, c._f)
+                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, c.slot, c.W, c.g, c.g_new,
+                c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt,
+                COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, c._act, c._Wa, c._D, c._J, c._work,
+                self._node_force, self._tissue_force, c.record[c.current], c.out)
+            c.record_steps[c.current] += 1
+            max_depth, count, energy, iterations, c.band = c.out.tolist()
+            c.iterations = int(iterations)
             if c.iterations < 0:
                 c.unconverged += 1
                 if c.unconverged == 1:
-                    logger.warning("compliance solve did not converge in %d Newton iterations (kept the last "
-                                   "iterate); reported once", COMPLIANCE_MAX_ITERATIONS)
-        else:
-            penalty_kernels.penalty_forces(self._contact_face, self._contact_depth, self._contact_rate,
-                                           self._law, p.stiffness, p.damping, p.penalty_length, self._fmag)
-        record = self._no_record if c is None else c.accumulator()
-        result = penalty_kernels.distribute(
+                    logger.warning("compliance solve did not converge (%d Newton iterations, then %d Gauss-Seidel "
+                                   "sweeps; kept the last iterate); reported once", COMPLIANCE_MAX_ITERATIONS,
+                                   rendering_kernels.GAUSS_SEIDEL_SWEEPS)
+            return max_depth, count, energy
+        penalty_kernels.penalty_forces(self._contact_face, self._contact_depth, self._contact_rate,
+                                       self._law, p.stiffness, p.damping, p.penalty_length, self._fmag)
+        record = self._no_record
+        if c is not None:
+            record = c.record[c.current]
+            c.record_steps[c.current] += 1
+        return penalty_kernels.distribute(
             self._fmag, self._contact_face, self._contact_w, self._contact_n, self._contact_s, self._contact_depth,
             self.local.triangles, self.local.vertices, self.n_tool, self._law, p.stiffness, p.penalty_length,
             self._node_force, self._tissue_force, record)
-        if c is not None:
-            c.record_steps[c.current] += 1
-            if c.active:
-                c.g, c.g_new = c.g_new, c.g
-                c.band = rendering_kernels.patch_displacement(c.W, c.g, c.g_applied, c.u)
-        return result
 
     def _name_patch(self, tool1) -> None:
         c = self.compliance
@@ -578,9 +586,8 @@ class ContactModel:
         if self._renderer is None:
             self._renderer = PassiveRenderer(dt, p.passivity_controller, p.passivity_max_damping)
         self._renderer.period = dt
-        node_force = self._renderer.render(tool1, tool_vel, self._node_force)
-        self._node_force[:] = node_force
-        return node_force
+        self._renderer.render_in_place(tool1, tool_vel, self._node_force)
+        return self._node_force
 
     def _warn_if_active(self, potential: float, t: float) -> None:
         """Warn once when the contact has given back more energy than it ever stored.

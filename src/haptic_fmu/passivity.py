@@ -60,6 +60,12 @@ class PassiveRenderer:
         position = np.ascontiguousarray(position, np.float64).reshape(-1, 3)
         velocity = np.ascontiguousarray(velocity, np.float64).reshape(-1, 3)
         force = np.array(force, np.float64).reshape(-1, 3)
+        self.render_in_place(position, velocity, force)
+        return force
+
+    def render_in_place(self, position, velocity, force) -> None:
+        """`render` for (n,3) C-contiguous float64 arrays (the model's buffers): `force` is changed
+        in place (no conversion, no copy: the 1 kHz path)."""
         if self._prev_position is None or self._prev_position.shape != position.shape:
             self._prev_position = np.zeros_like(position)
             self._prev_force = np.zeros_like(position)
@@ -69,7 +75,6 @@ class PassiveRenderer:
             self.period, self.controller, self.max_damping)
         self._has_prev = True
         self.min_energy = min(self.min_energy, self.energy)
-        return force
 
     def observe(self, position) -> float:
         """Port energy including the work of the held force up to `position` (no sample recorded)."""

@@ -240,16 +240,12 @@ class WallCompliance:
         self._Wa = np.zeros((m, 3 * self.max_nodes))
         self._D = np.zeros((m, m))
         self._J = np.zeros((m, m))
-        self._rhs = np.zeros(m)
-        self._delta0 = np.zeros(m)
-        self._f = np.zeros(m)
+        self._work = np.zeros((3, m))            # rhs, delta0, f of the solve
+        self.out = np.zeros(5)                   # max depth, contact count, energy, iterations, largest |u|
         # record of the force sent to the tissue, per frame interval
         self.record = np.zeros((self.lag + 1, n_surface, 3))
         self.record_steps = np.zeros(self.lag + 1, np.int64)
         self.current = 0
-
-    def accumulator(self) -> np.ndarray:
-        return self.record[self.current]
 
     def close_interval(self) -> None:
         """A frame arrived: the current interval's record is complete; start the next one."""

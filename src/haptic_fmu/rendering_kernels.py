@@ -17,13 +17,20 @@ wall's yielding this step also moves the surface: rate_i(f) = rate_i + (delta_i(
 `compliance_forces` solves f_i = phi(delta_i(f), rate_i(f)) (the penalty law phi) by semi-smooth
 Newton: the Jacobian is I + diag(phi_delta + phi_rate / dt) D on contacts that stay in contact
 (delta > 0), the identity elsewhere (f_i = 0). For the linear law on a fixed contact set one
-iteration is exact; a few handle contacts that separate and the non-linear laws.
+iteration is exact; a few handle contacts that separate and the non-linear laws. Where the law
+jumps at delta = 0 (damping: f(0+) = b rate) the solution can be a wall resting exactly at the
+tool (delta = 0, f between 0 and f(0+)), which Newton cannot reach (it cycles): after max_iter
+iterations the solve falls back to projected Gauss-Seidel with that set-valued law, contact by
+contact (`_scalar_contact`).
 """
 import math
 
 from numba import njit
 
-from .penalty_kernels import LAW_HUNT_CROSSLEY, penalty_magnitude, penalty_slopes
+from .penalty_kernels import LAW_HUNT_CROSSLEY, distribute, penalty_magnitude, penalty_slopes
+
+#: Sweeps of the Gauss-Seidel fallback of the compliance solve (linear convergence; a few contacts).
+GAUSS_SEIDEL_SWEEPS = 500
 
 
 @njit(cache=True)
@@ -117,6 +124,71 @@ def _solved_contact(ia, i, m, delta0, D, f, contact_depth, contact_rate, dt):
 
 
 @njit(cache=True)
+def _scalar_contact(e, d, r_base, law, k, b, d0, dt):
+    """Force of one contact whose depth is delta = e - d f (the others held), rate r_base + delta/dt.
+
+    The law may jump at delta = 0 (linear and quadratic laws with damping: f(0+) = b rate): the
+    graph is then set-valued there and a wall that yields enough rests exactly at the tool
+    (delta = 0, f = e/d within [0, f(0+)]). Otherwise the root of the monotone
+    h(delta) = phi(delta, r_base + delta/dt) - (e - delta)/d, by safeguarded Newton."""
+    if e <= 0.0:
+        return 0.0
+    if d <= 0.0:
+        return penalty_magnitude(e, r_base + e / dt, law, k, b, d0)
+    tiny = 1e-300
+    if penalty_magnitude(tiny, r_base, law, k, b, d0) >= e / d:
+        return e / d
+    lo = 0.0
+    hi = e
+    for _ in range(200):
+        if penalty_magnitude(hi, r_base + hi / dt, law, k, b, d0) - (e - hi) / d >= 0.0:
+            break
+        lo = hi
+        hi *= 2.0
+    x = hi
+    for _ in range(100):
+        h = penalty_magnitude(x, r_base + x / dt, law, k, b, d0) - (e - x) / d
+        if h >= 0.0:
+            hi = x
+        else:
+            lo = x
+        s_delta, s_rate = penalty_slopes(x, r_base + x / dt, law, k, b, d0)
+        slope = s_delta + s_rate / dt + 1.0 / d
+        x_new = x - h / slope
+        if not (lo < x_new < hi):
+            x_new = 0.5 * (lo + hi)
+        if abs(x_new - x) <= 1e-15 * x or hi - lo <= 1e-15 * hi:
+            x = x_new
+            break
+        x = x_new
+    return (e - x) / d
+
+
+@njit(cache=True)
+def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0, dt, tol, max_sweeps, f):
+    """Projected Gauss-Seidel over the contacts, each solved exactly with the others held (converges
+    for the positive semi-definite D). Returns the sweeps used, -1 when max_sweeps did not reach tol."""
+    for sweep in range(max_sweeps):
+        change = 0.0
+        fmax = 0.0
+        for ia in range(m):
+            i = act[ia]
+            e = delta0[ia]
+            for ib in range(m):
+                if ib != ia:
+                    e -= D[ia, ib] * f[ib]
+            new = _scalar_contact(e, D[ia, ia], contact_rate[i] - contact_depth[i] / dt, law, k, b, d0, dt)
+            if abs(new - f[ia]) > change:
+                change = abs(new - f[ia])
+            f[ia] = new
+            if abs(new) > fmax:
+                fmax = abs(new)
+        if change <= tol * (1.0 + fmax):
+            return sweep + 1
+    return -1
+
+
+@njit(cache=True)
 def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g_prev,
                       law, k, b, d0, dt, max_iter, tol, fmag, g_out, act, Wa, D, J, rhs, delta0, f):
     """Contact forces against the yielding wall (see the module docstring).
@@ -200,19 +272,27 @@ def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact
         if step <= tol * (1.0 + fmax):
             iterations = it + 1
             break
+    if iterations < 0:
+        # Newton cycles where the law jumps at delta = 0 (the wall rests exactly at the tool): solve
+        # contact by contact with the set-valued law instead
+        for ia in range(m):
+            f[ia] = 0.0
+        sweeps = _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0, dt, tol,
+                               GAUSS_SEIDEL_SWEEPS, f)
+        iterations = -1 if sweeps < 0 else max_iter + sweeps
     # final state: depths and rates of the solved wall, forces, patch load
     for ia in range(m):
         i = act[ia]
         delta, rate = _solved_contact(ia, i, m, delta0, D, f, contact_depth, contact_rate, dt)
         fc = contact_face[i]
-        if delta <= 0.0:
+        if delta <= 0.0 and f[ia] <= 0.0:
             f[ia] = 0.0
             contact_face[i] = -1
             contact_depth[i] = 0.0
             contact_rate[i] = 0.0
             continue
         fmag[i] = f[ia]
-        contact_depth[i] = delta
+        contact_depth[i] = max(delta, 0.0)       # 0 (to round-off) where the wall rests at the tool
         contact_rate[i] = rate
         for j in range(3):
             s = slot[tri[fc, j]]
@@ -311,3 +391,25 @@ def name_patch(pos, vertices, tri, contact_face, contact_point, tool, near_dist,
     for s in range(count, max_nodes):
         out[s] = -1
     return count
+
+
+@njit(cache=True)
+def compliance_response(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
+                        local_to_global, n_tool, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt, max_iter,
+                        tol, fmag, work_i, Wa, D, J, work_f, node_force, tissue_force, force_sum, out):
+    """The compliance model's response in one call (the 1 kHz path): `compliance_forces`, then
+    `penalty_kernels.distribute`, then the patch's new load g and displacement u = W (g - g_applied).
+    work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
+    (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
+    iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
+                                   law, k, b, d0, dt, max_iter, tol, fmag, g_new, work_i, Wa, D, J, work_f[0],
+                                   work_f[1], work_f[2])
+    max_depth, count, energy = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri,
+                                          local_to_global, n_tool, law, k, d0, node_force, tissue_force, force_sum)
+    for r in range(g.shape[0]):
+        g[r] = g_new[r]
+    out[0] = max_depth
+    out[1] = count
+    out[2] = energy
+    out[3] = iterations
+    out[4] = patch_displacement(W, g, g_applied, u)
