@@ -207,3 +207,21 @@ def max_displacement(a, b):
         if d2 > best:
             best = d2
     return math.sqrt(best)
+
+
+@njit(cache=True)
+def all_finite(a):
+    """True when every entry of the (n,3) array is finite (the input check of the 1 kHz path)."""
+    for i in range(a.shape[0]):
+        for d in range(3):
+            if not math.isfinite(a[i, d]):
+                return False
+    return True
+
+
+@njit(cache=True)
+def difference_velocity(p1, p0, dt, out):
+    """out = (p1 - p0) / dt, row by row (finite-difference tool velocities, no allocation)."""
+    for i in range(p1.shape[0]):
+        for d in range(3):
+            out[i, d] = (p1[i, d] - p0[i, d]) / dt

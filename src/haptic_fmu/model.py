@@ -58,7 +58,7 @@ import numpy as np
 
 from . import aabb, aabb_kernels, ccd, narrow_phase, penalty_kernels
 from . import rendering_kernels
-from .geometry import max_displacement
+from .geometry import all_finite, difference_velocity, max_displacement
 from .passivity import PassiveRenderer
 from .penalty import PENALTY_LAWS, law_code
 from .rendering import (FREE_MOTIONS, LOCAL_POLICIES, ComplianceError, LocalModel, WallCompliance,
@@ -173,7 +173,7 @@ class ContactOutputs:
 
 def _float_array(name, value, n, fix):
     arr = np.asarray(value, dtype=np.float64)
-    if arr.shape == (n, 3) and math.isfinite(float(np.sum(arr))):   # the common case, one reduction
+    if arr.shape == (n, 3) and arr.flags.c_contiguous and all_finite(arr):   # the common case
         return arr
     if arr.size != n * 3:
         raise ContactInputError(
@@ -267,6 +267,7 @@ class ContactModel:
         self._active_warned = False     # the active-contact warning is given once
         self._tool_at_frame = None      # tool positions when the last frame arrived
         self._built_at = None           # tool positions when the local model was last queried
+        self._tool_vel = np.zeros((self.n_tool, 3))   # differenced tool velocities (buffer)
         self._inside = np.zeros(self.n_tool, np.int8)
         self._entry_normal = np.zeros((self.n_tool, 3))
         # narrow phase -> response: contact data per primitive (nodes, then segments)
@@ -488,7 +489,8 @@ class ContactModel:
                              "give the tool point positions in m")
         tool0 = tool1 if self._tool_prev is None else self._tool_prev
         if tool_velocities is None:
-            tool_vel = (tool1 - tool0) / dt
+            tool_vel = self._tool_vel
+            difference_velocity(tool1, tool0, float(dt), tool_vel)
         else:
             tool_vel = _float_array("tool_velocities", tool_velocities, self.n_tool,
                                     "give the tool point velocities in m/s, or None to difference positions")

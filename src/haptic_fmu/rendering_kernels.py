@@ -58,6 +58,17 @@ def add_displacement(pos, slot, u):
 
 
 @njit(cache=True)
+def _largest_node_norm(u):
+    """Largest |u_s| over the nodes of a (3p,) displacement."""
+    largest = 0.0
+    for s in range(u.shape[0] // 3):
+        norm = math.sqrt(u[3 * s] ** 2 + u[3 * s + 1] ** 2 + u[3 * s + 2] ** 2)
+        if norm > largest:
+            largest = norm
+    return largest
+
+
+@njit(cache=True)
 def patch_displacement(W, g, g_applied, u):
     """u = W (g - g_applied) (3p); returns the largest node displacement |u_s| (m)."""
     n = u.shape[0]
@@ -66,12 +77,7 @@ def patch_displacement(W, g, g_applied, u):
         for c in range(n):
             acc += W[r, c] * (g[c] - g_applied[c])
         u[r] = acc
-    largest = 0.0
-    for s in range(n // 3):
-        norm = math.sqrt(u[3 * s] ** 2 + u[3 * s + 1] ** 2 + u[3 * s + 2] ** 2)
-        if norm > largest:
-            largest = norm
-    return largest
+    return _largest_node_norm(u)
 
 
 @njit(cache=True)
@@ -398,7 +404,8 @@ def compliance_response(contact_face, contact_w, contact_n, contact_depth, conta
                         local_to_global, n_tool, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt, max_iter,
                         tol, fmag, work_i, Wa, D, J, work_f, node_force, tissue_force, force_sum, out):
     """The compliance model's response in one call (the 1 kHz path): `compliance_forces`, then
-    `penalty_kernels.distribute`, then the patch's new load g and displacement u = W (g - g_applied).
+    `penalty_kernels.distribute`, then the patch's new load g and displacement u = W (g - g_applied)
+    (updated by the changed columns of g only: u is W (g - g_applied) to round-off).
     work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
     (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
     iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
@@ -406,10 +413,17 @@ def compliance_response(contact_face, contact_w, contact_n, contact_depth, conta
                                    work_f[1], work_f[2])
     max_depth, count, energy = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri,
                                           local_to_global, n_tool, law, k, d0, node_force, tissue_force, force_sum)
-    for r in range(g.shape[0]):
-        g[r] = g_new[r]
+    # u = W (g - g_applied), updated by the columns whose load changed (at most 9 per contact:
+    # the contact faces' vertices; none while nothing touches the patch)
+    n3 = g.shape[0]
+    for col in range(n3):
+        dg = g_new[col] - g[col]
+        if dg != 0.0:
+            for r in range(n3):
+                u[r] += W[r, col] * dg
+            g[col] = g_new[col]
     out[0] = max_depth
     out[1] = count
     out[2] = energy
     out[3] = iterations
-    out[4] = patch_displacement(W, g, g_applied, u)
+    out[4] = _largest_node_norm(u)
