@@ -133,6 +133,18 @@ def test_vertices_without_compliance_are_rigid_and_no_W_renders_as_hold():
         np.testing.assert_array_equal(a.tool_force, b.tool_force)
         np.testing.assert_array_equal(a.tissue_contact_force, b.tissue_contact_force)
         assert a.passivity_energy == b.passivity_energy
+    # the same with the extrapolated free motion: exactly extrapolate
+    extra, _ = probe_model(k, "extrapolate")
+    comp, _ = probe_model(k, "compliance", compliance_free_motion="extrapolate")
+    for i in range(80):
+        if i % 33 == 0:
+            extra.set_tissue_frame(i * 1e-3, pos + [0.0, 0.0, 1e-5 * i], np.tile([0.0, 0.0, 0.01], (pos.shape[0], 1)))
+            comp.set_tissue_frame(i * 1e-3, pos + [0.0, 0.0, 1e-5 * i], np.tile([0.0, 0.0, 0.01], (pos.shape[0], 1)))
+        p = point + [0.0, 0.0, -1e-5 * i]
+        a, b = extra.step(i * 1e-3, 1e-3, p[None]), comp.step(i * 1e-3, 1e-3, p[None])
+        np.testing.assert_array_equal(a.tool_force, b.tool_force)
+        assert a.contact_count == b.contact_count
+    assert a.contact_count == 1
 
 
 # ---------------------------------------------------------------------------- the solve

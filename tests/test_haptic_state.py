@@ -105,3 +105,30 @@ def test_centerline_model_pickled_mid_run_continues_bit_identically():
     assert sum(np.any(f[0] != 0) for f in first) > 10
     for a, b in zip(first, again):
         _assert_same(a, b)
+
+
+def test_contact_model_unpickled_in_a_fresh_process_continues_bit_identically(tmp_path):
+    """The serialized state restores in another interpreter (an FMU state read back after a restart):
+    the unpickled model loads its kernels there and continues with the same outputs."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    scene = WallScene("compliance")
+    state = dict(u=scene.u, v=scene.v, acc=scene.acc, pending=None)
+    scene.run(scene.model, 0, 300, state)
+    (tmp_path / "state.pkl").write_bytes(pickle.dumps((scene.model, state)))
+    first = scene.run(scene.model, 300, 400, state)
+    np.save(tmp_path / "here.npy", np.array([np.concatenate([f[0], f[2].ravel(), [f[7]]]) for f in first]))
+    tests = Path(__file__).resolve().parent
+    script = f"""
+import pickle, sys, numpy as np
+sys.path[:0] = [{str(tests)!r}, {str(tests.parent / 'src')!r}]
+from test_haptic_state import WallScene
+model, state = pickle.loads(open({str(tmp_path / 'state.pkl')!r}, 'rb').read())
+scene = WallScene("compliance")
+outs = scene.run(model, 300, 400, state)
+np.save({str(tmp_path / 'there.npy')!r}, np.array([np.concatenate([f[0], f[2].ravel(), [f[7]]]) for f in outs]))
+"""
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=600)
+    np.testing.assert_array_equal(np.load(tmp_path / "there.npy"), np.load(tmp_path / "here.npy"))
