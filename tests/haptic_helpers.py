@@ -43,7 +43,7 @@ def probe_force(local, t, point, velocity=(0.0, 0.0, 0.0), *, stiffness=500.0, d
     face, w, n = np.full(1, -1, np.int64), np.zeros((1, 3)), np.zeros((1, 3))
     depth, rate, s, q, near = np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((1, 3)), np.zeros(1)
     narrow_phase.proximity(pos, local.velocities, local.triangles, local.node_ptr[:2], local.node_faces,
-                           np.zeros(1, np.int64), local.seg_faces, p, v, float(radius), np.zeros(1, np.int8),
+                           np.zeros(1, np.int64), local.seg_faces, p, v, float(radius), 0.0, np.zeros(1, np.int8),
                            np.zeros((1, 3)), face, w, n, depth, rate, s, q, near)
     fmag = np.zeros(1)
     code = law_code(law)
