@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from haptic_fmu import kernels, penalty
-from haptic_fmu.local_model import LocalModel
+import haptic_helpers as helpers
+from haptic_fmu import penalty
 from haptic_fmu.model import ContactModel, ContactParameters
 
 RNG = np.random.default_rng(20260521)
@@ -82,7 +82,7 @@ def test_closest_point_matches_plain_reference():
     tri = RNG.normal(size=(n, 3, 3))
     pts = RNG.normal(size=(n, 3)) * 1.5
     bary = np.zeros((n, 3))
-    kernels.closest_point_triangle_batch(pts, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy(), bary)
+    helpers.closest_point_triangle_batch(pts, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy(), bary)
     q = np.einsum("ij,ijk->ik", bary, tri)
     ref = np.array([reference_closest_point(pts[i], *tri[i]) for i in range(n)])
     assert np.all(bary >= -1e-12) and np.allclose(bary.sum(1), 1.0, atol=1e-12)
@@ -97,7 +97,7 @@ def test_segment_triangle_distance_matches_sampled_reference():
     s = np.zeros(n)
     bary = np.zeros((n, 3))
     dist = np.zeros(n)
-    kernels.closest_segment_triangle_batch(p0, p1, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy(),
+    helpers.closest_segment_triangle_batch(p0, p1, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy(),
                                            s, bary, dist)
     samples = 4001
     u = np.linspace(0.0, 1.0, samples)
@@ -118,7 +118,7 @@ def test_segment_triangle_distance_matches_sampled_reference():
 
 def test_capsule_through_penalty_api():
     tri = flat_triangle()
-    d, s, w = penalty.segment_triangle_distance([-0.05, 0.0, 0.0004], [0.05, 0.0, 0.0004], tri)
+    d, s, w = helpers.segment_triangle_distance([-0.05, 0.0, 0.0004], [0.05, 0.0, 0.0004], tri)
     assert d == pytest.approx(0.0004, abs=1e-15)
     assert 0.0 < s < 1.0 and np.all(w >= 0)
 
@@ -131,34 +131,34 @@ def test_flat_triangle_force_is_design_equation(velocity):
     v = np.array(velocity)
     n = np.array([0.0, 0.0, 1.0])
     expected = -k * (-depth) * n - b * (v @ n) * n
-    contact = penalty.facet_contact(p, flat_triangle(), v, stiffness=k, damping=b)
+    contact = helpers.facet_contact(p, flat_triangle(), v, stiffness=k, damping=b)
     np.testing.assert_allclose(contact.tool_force, expected, rtol=1e-14, atol=1e-15)
     assert contact.distance == pytest.approx(-depth, abs=1e-16)
-    local = LocalModel.from_surface(0.0, flat_triangle(), np.zeros((3, 3)), [[0, 1, 2]], policy="hold")
-    force, dist = local.probe_force(0.01, p, v, stiffness=k, damping=b)
+    local = helpers.local_from_surface(0.0, flat_triangle(), np.zeros((3, 3)), [[0, 1, 2]], policy="hold")
+    force, dist = helpers.probe_force(local, 0.01, p, v, stiffness=k, damping=b)
     np.testing.assert_allclose(force, expected, rtol=1e-14, atol=1e-15)
     assert dist == pytest.approx(-depth, abs=1e-16)
 
 
 def test_no_force_outside():
-    contact = penalty.facet_contact([0.0, 0.0, 1e-4], flat_triangle(), [0.0, 0.0, -1.0],
+    contact = helpers.facet_contact([0.0, 0.0, 1e-4], flat_triangle(), [0.0, 0.0, -1.0],
                                     stiffness=500.0, damping=10.0)
     assert np.all(contact.tool_force == 0.0) and contact.distance == pytest.approx(1e-4)
-    local = LocalModel.from_surface(0.0, flat_triangle(), np.zeros((3, 3)), [[0, 1, 2]])
-    force, dist = local.probe_force(0.0, [0.0, 0.0, 1e-4], [0.0, 0.0, -1.0], stiffness=500.0, damping=10.0)
+    local = helpers.local_from_surface(0.0, flat_triangle(), np.zeros((3, 3)), [[0, 1, 2]])
+    force, dist = helpers.probe_force(local, 0.0, [0.0, 0.0, 1e-4], [0.0, 0.0, -1.0], stiffness=500.0, damping=10.0)
     assert np.all(force == 0.0) and dist is None
 
 
 def test_tissue_gets_opposite_force_and_same_moment():
     for _ in range(50):
         tri = RNG.normal(size=(3, 3)) * 0.01
-        n = penalty.face_normal(tri)
+        n = helpers.face_normal(tri)
         w = RNG.dirichlet(np.ones(3))
         q = w @ tri
         p = q - RNG.uniform(1e-4, 2e-3) * n            # behind the facet, projecting inside it
         v = RNG.normal(size=3) * 0.05
         vv = RNG.normal(size=(3, 3)) * 0.02
-        c = penalty.facet_contact(p, tri, v, vv, stiffness=700.0, damping=1.5)
+        c = helpers.facet_contact(p, tri, v, vv, stiffness=700.0, damping=1.5)
         np.testing.assert_allclose(c.vertex_forces.sum(0), -c.tool_force, rtol=0, atol=1e-15)
         np.testing.assert_allclose(c.contact_point, q, atol=1e-15)
         # moment about the origin: tissue nodal forces == -F applied at q; and (p - q) x F = 0
@@ -193,16 +193,16 @@ def test_extrapolate_vs_hold_on_moving_triangle():
     u = np.array([0.0, 0.0, 0.05])                     # the triangle moves up (out of the tissue)
     vel = np.tile(u, (3, 1))
     t_frame, t = 0.10, 0.10 + 0.02
-    hold = LocalModel.from_surface(t_frame, tri, vel, [[0, 1, 2]], policy="hold")
-    extra = LocalModel.from_surface(t_frame, tri, vel, [[0, 1, 2]], policy="extrapolate")
+    hold = helpers.local_from_surface(t_frame, tri, vel, [[0, 1, 2]], policy="hold")
+    extra = helpers.local_from_surface(t_frame, tri, vel, [[0, 1, 2]], policy="extrapolate")
     np.testing.assert_array_equal(hold.positions_at(t), tri)
     np.testing.assert_allclose(extra.positions_at(t), tri + u * (t - t_frame), rtol=0, atol=1e-18)
     k, b = 500.0, 3.0
     p = np.array([0.0, 0.0, 0.0004])                   # outside the frame plane, inside the moved one
     v = np.array([0.0, 0.0, -0.01])
-    force, dist = hold.probe_force(t, p, v, stiffness=k, damping=b)
+    force, dist = helpers.probe_force(hold, t, p, v, stiffness=k, damping=b)
     assert dist is None and np.all(force == 0.0)
-    force, dist = extra.probe_force(t, p, v, stiffness=k, damping=b)
+    force, dist = helpers.probe_force(extra, t, p, v, stiffness=k, damping=b)
     depth = u[2] * (t - t_frame) - p[2]
     assert dist == pytest.approx(-depth, rel=1e-12)
     expected = k * depth + b * (u[2] - v[2])            # relative approach speed

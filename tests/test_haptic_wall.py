@@ -11,7 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from haptic_fmu.passivity import PassiveRenderer, PassivityObserver, controller_damping
+from haptic_fmu.passivity import PassiveRenderer
+from haptic_helpers import PassivityObserver, controller_damping
 from haptic_fmu.penalty import normal_force
 
 M = 0.05        # kg

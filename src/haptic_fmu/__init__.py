@@ -1,12 +1,16 @@
 """Contact and haptics of the AAA co-simulation (the Contact FMU's model layer, no FMI).
 
-Modules
-- `aabb`, `ccd`: broad phase (AABB tree, swept boxes) and continuous collision detection.
-- `penalty`: signed distance to a facet, penalty laws, barycentric force distribution.
-- `local_model`: facets near the tool captured at each tissue frame, held or extrapolated.
-- `passivity`: passivity observer and controller of the haptic port (Hannaford and Ryu 2002).
-- `kernels`: numba kernels of the 1 kHz path (no validation).
-- `model`: `ContactParameters`, `ContactModel` (the object the FMU wrapper delegates to).
+Modules, by role (as SOFA's collision pipeline and haptic rendering)
+- broad phase: `aabb` (+ `aabb_kernels`): swept boxes, AABB tree with refit, `triangle_boxes`.
+- narrow phase: `narrow_phase` (CCD candidates, closest facets and depths), `ccd` (+ `ccd_kernels`):
+  conservative continuous collision detection; `geometry`: the closest-point primitives.
+- response: `penalty` (+ `penalty_kernels`): penalty laws, forces on the tool and the tissue.
+- rendering: `rendering` (+ `rendering_kernels`): the local models between tissue frames,
+  "compliance" (default: the wall yields through the compliance W from Tissue), "hold",
+  "extrapolate"; the patch the contact names for W. (`local_model` is its former name.)
+- passivity: `passivity`: passivity observer and controller of the haptic port (Hannaford and Ryu 2002).
+- `model`: `ContactParameters`, `ContactModel` (the object the FMU wrapper delegates to);
+  `ContactModel.step` runs the stages in that order.
 
 Conventions (SI units)
 - Surface triangles are local surface node ids, wound so that (b - a) x (c - a) is the OUTWARD
@@ -21,28 +25,33 @@ Conventions (SI units)
 API
     params = ContactParameters(stiffness=500.0, damping=0.1, penalty_law="linear",
                                penalty_length=1e-3, detection="continuous", interpolation="linear",
-                               local_model="extrapolate", tool="centerline", tool_radius=0.001,
+                               local_model="compliance", tool="centerline", tool_radius=0.001,
                                passivity_controller=False, passivity_max_damping=20.0,
-                               margin=0.003, frame_period=1/30).validate()
+                               margin=0.003, frame_period=1/30, max_patch_nodes=16,
+                               compliance_free_motion="hold", compliance_force_lag=2).validate()
     model = ContactModel(surface_triangles, n_surface, n_tool, params)
-    model.set_tissue_frame(t, positions, velocities)        # ~30 Hz, (n_surface,3) or flat
+    model.set_tissue_frame(t, positions, velocities,        # ~30 Hz, (n_surface,3) or flat
+                           compliance=W, compliance_nodes=ids,   # W (3p x 3p, m/N) of the ids the
+                           applied_force=None)              # tissue used (last patch_nodes()), optional
     out = model.step(t, dt, tool_positions, tool_velocities=None)   # ~1 kHz, evaluated at t + dt
     out.tool_force (3,), out.tip_force (3,), out.tissue_contact_force (n_surface,3),
     out.node_forces (n_tool,3), out.penetration_depth, out.contact_count, out.contact_energy,
     out.passivity_energy        # arrays are the model's buffers, overwritten by the next step
+    model.patch_nodes()          # (max_patch_nodes,) ids in or near the contact, ascending, -1 padded
     state = model.get_state(); model.set_state(state)           # rollback (deep copies)
+    copy.deepcopy(model), pickle.loads(pickle.dumps(model))     # FMU state: continue bit-identically
     model.inside, model.contact_faces, model.ccd_hits, model.local_refreshes   # diagnostics
 Invalid parameters raise `ContactParameterError`, invalid run-time inputs `ContactInputError`
 (both ValueError) naming the field and the fix.
 """
-from .local_model import LocalModel
 from .model import (ContactInputError, ContactModel, ContactOutputs, ContactParameterError,
                     ContactParameters, parameters_from_dict)
-from .passivity import PassiveRenderer, PassivityObserver, controller_damping
-from .penalty import PENALTY_LAWS, facet_contact, normal_force, penalty_energy
+from .passivity import PassiveRenderer
+from .penalty import PENALTY_LAWS, normal_force, penalty_energy
+from .rendering import ComplianceError, LocalModel, WallCompliance, check_compliance
 
 __all__ = [
-    "ContactInputError", "ContactModel", "ContactOutputs", "ContactParameterError", "ContactParameters",
-    "LocalModel", "PENALTY_LAWS", "PassiveRenderer", "PassivityObserver", "controller_damping",
-    "facet_contact", "normal_force", "parameters_from_dict", "penalty_energy",
+    "ComplianceError", "ContactInputError", "ContactModel", "ContactOutputs", "ContactParameterError",
+    "ContactParameters", "LocalModel", "PENALTY_LAWS", "PassiveRenderer", "WallCompliance", "check_compliance",
+    "normal_force", "parameters_from_dict", "penalty_energy",
 ]

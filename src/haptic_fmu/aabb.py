@@ -72,15 +72,20 @@ def _inflated(lo, hi, margin):
 
 
 def triangle_boxes(positions, triangles, positions_end=None, inflate=0.0):
-    """Boxes (lo, hi) of triangles, swept over the step when positions_end is given (box of both ends)."""
+    """Boxes (lo, hi) of triangles, swept over the step when positions_end is given (box of both ends).
+
+    Validating wrapper of `aabb_kernels.triangle_boxes`, the kernel the contact model refits its
+    tree with at every tissue frame."""
     positions = _points_array("positions", positions, "vertex positions, one row per vertex")
     triangles = _triangles_array(triangles, positions.shape[0])
     inflate = _margin("inflate", inflate)
     end = _end_positions(positions_end, positions)
-    corners = positions[triangles]
-    if end is not None:
-        corners = np.concatenate([corners, end[triangles]], axis=1)
-    return _inflated(*_boxes_of_groups(corners), inflate)
+    lo = np.empty((triangles.shape[0], 3))
+    hi = np.empty((triangles.shape[0], 3))
+    aabb_kernels.triangle_boxes(np.ascontiguousarray(positions),
+                                positions if end is None else np.ascontiguousarray(end),
+                                end is not None, np.ascontiguousarray(triangles), lo, hi)
+    return _inflated(lo, hi, inflate)
 
 
 def segment_boxes(points, positions_end=None, radius=0.0):

@@ -176,3 +176,22 @@ def query_tree_boxes(lo, hi, order, node_lo, node_hi, left, right, start, count,
                 stack[top + 1] = right[node]
                 top += 2
     return found
+
+
+@njit(cache=True)
+def triangle_boxes(pos, end, use_end, tri, lo, hi):
+    """Boxes of the triangles over pos (and end, when use_end: the box of both) into lo, hi (t,3)."""
+    for f in range(tri.shape[0]):
+        for d in range(3):
+            mn = pos[tri[f, 0], d]
+            mx = mn
+            for j in range(3):
+                x = pos[tri[f, j], d]
+                mn = min(mn, x)
+                mx = max(mx, x)
+                if use_end:
+                    x = end[tri[f, j], d]
+                    mn = min(mn, x)
+                    mx = max(mx, x)
+            lo[f, d] = mn
+            hi[f, d] = mx

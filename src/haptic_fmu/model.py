@@ -1,13 +1,25 @@
 """Contact model of the Contact FMU: tissue frames at ~30 Hz, haptic steps at ~1 kHz (no FMI).
 
+Organised by role, as SOFA's collision and haptics pipeline:
+
+| stage | module | what |
+|---|---|---|
+| broad phase | `aabb` (+ `aabb_kernels`) | AABB tree of the surface triangles (built on the first frame, refitted at every frame), queried with boxes around the tool's sweep: the local model's candidate pairs |
+| narrow phase | `narrow_phase`, `ccd` (+ `ccd_kernels`) | CCD of the tool nodes crossing a face plane (frame-level against the tissue's motion, step-level against the local model's), then the closest facet and depth of every tool primitive |
+| response | `penalty` (+ `penalty_kernels`) | penalty laws, forces on the tool nodes and the tissue nodes |
+| rendering | `rendering` (+ `rendering_kernels`) | local models between frames: `compliance` (the wall yields through W from Tissue; the contact is solved against it), `hold`, `extrapolate` |
+| passivity | `passivity` | passivity observer and controller of the haptic port |
+
 Data flow
-- `set_tissue_frame(t, positions, velocities)`: refits the AABB tree of the surface triangles
-  (built once, on the first frame; never rebuilt), runs the frame-level continuous detection of
-  the tool against the tissue's motion since the previous frame, and refreshes the local model.
-- `step(t, dt, tool_positions, tool_velocities=None)`: one haptic step, evaluated at t + dt with
-  the tool at `tool_positions` (the previous call's positions start the swept interval). Broad
-  phase against the local model only (its candidate pairs), optional CCD over the step, narrow
-  phase and penalty forces in one numba kernel, then the passivity observer/controller.
+- `set_tissue_frame(t, positions, velocities, compliance=None, compliance_nodes=None,
+  applied_force=None)`: refits the AABB tree, runs the frame-level CCD of the tool against the
+  tissue's motion since the previous frame, refreshes the local model, and (local_model =
+  "compliance") takes the compliance W of the patch nodes the tissue used (see `rendering`).
+- `step(t, dt, tool_positions, tool_velocities=None)`: one haptic step evaluated at t + dt with the
+  tool at `tool_positions` (the previous call's positions start the swept interval):
+  tool inputs -> broad phase (re-query only when the tool moved more than margin/2) -> rendered
+  geometry (free motion + the wall's yielding) -> narrow phase -> response (rigid penalty, or the
+  penalty solved against the yielding wall) -> patch naming -> passivity.
 
 Tool
 - "centerline": n_tool points of the catheter centerline; nodes are spheres and segments capsules
@@ -18,17 +30,23 @@ Contact side memory: a tool node that enters the tissue remembers the outward no
 it entered through and, while inside, measures its penetration only against faces facing the
 same way. This keeps the force on the side it came from when a thin wall is crossed (both the
 discrete and the continuous detection use it). Continuous detection adds the CCD of every node
-that crosses a face plane during the step (linear motion; the local model's motion over a step
-is linear for both policies) and, at each new tissue frame, of the tool against the tissue's motion
-between frames (linear, or cubic Hermite trajectories from the frame velocities when
-interpolation="cubic"), so a fast tool or wall cannot tunnel. Segment interiors are checked
-discretely only (the catheter's nodes carry the CCD). The interpolation parameter only affects
-that frame-level detection.
+that crosses a face plane during the step (linear motion; the local model's free motion over a
+step is linear for every policy; the compliance model's yielding within a step is not swept) and,
+at each new tissue frame, of the tool against the tissue's motion between frames (linear, or
+cubic Hermite trajectories from the frame velocities when interpolation="cubic"), so a fast tool
+or wall cannot tunnel. Segment interiors are checked discretely only (the catheter's nodes carry
+the CCD). The interpolation parameter only affects that frame-level detection.
 
-Real time: every kernel (and the CCD) is loaded or compiled at construction, not in the first
-steps; the hot path allocates only small per-step arrays; the broad phase runs against the local
+Real time: every kernel (and the CCD) is loaded or compiled at construction (and after
+unpickling), not in the first steps; the kernels of the hot path write into buffers allocated at
+construction, at frames or at local-model refreshes; the broad phase runs against the local
 model's candidate pairs, re-queried from the tree only at frames and when the tool has moved
 more than margin/2 since the last query.
+
+State: a ContactModel holds only numpy arrays, numbers and plain objects, so `copy.deepcopy` and
+pickle give a model that continues bit-identically (frames, W, AABB tree, local model, contact
+side memory, passivity energy, previous tool positions); `get_state`/`set_state` snapshot the
+run-time part for rollback.
 """
 import copy
 import logging
@@ -38,10 +56,13 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from . import kernels
-from .local_model import LOCAL_POLICIES, LocalModel
+from . import aabb, aabb_kernels, ccd, narrow_phase, penalty_kernels
+from . import rendering_kernels
+from .geometry import all_finite, difference_velocity, max_displacement
 from .passivity import PassiveRenderer
 from .penalty import PENALTY_LAWS, law_code
+from .rendering import (FREE_MOTIONS, LOCAL_POLICIES, ComplianceError, LocalModel, WallCompliance,
+                        check_compliance)
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +84,8 @@ class ContactInputError(ValueError):
 
 
 def _is_real(value) -> bool:
+    if type(value) is float:            # the 1 kHz common case, checked cheaply
+        return True
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
@@ -76,13 +99,18 @@ class ContactParameters:
     penalty_length: float = 1e-3       # d0, m (non-linear laws)
     detection: str = "continuous"      # "continuous" | "discrete"
     interpolation: str = "linear"      # tissue trajectories between frames for CCD: "linear" | "cubic"
-    local_model: str = "extrapolate"   # "hold" | "extrapolate"
+    local_model: str = "compliance"    # "compliance" | "hold" | "extrapolate" (see rendering.py)
     tool: str = "centerline"           # "centerline" | "probe"
     tool_radius: float = 0.001         # m (centerline capsules; a probe is a point)
     passivity_controller: bool = False
     passivity_max_damping: float = 20.0  # N s/m, cap of the controller's damping (keep < 2 m_device / dt)
     margin: float = 0.003              # m, broad-phase margin of the local model
     frame_period: float = 1.0 / 30.0   # s, expected tissue frame period (extent of extrapolated boxes)
+    max_patch_nodes: int = 16          # N, most surface nodes the contact names for the compliance (structural)
+    compliance_free_motion: str = "hold"  # the wall's free motion between frames: "hold" | "extrapolate"
+    compliance_force_lag: int = 2      # frames between the haptic interval whose mean force the tissue applied
+    #                                    and the frame showing it, when the tissue does not report the force
+    #                                    (2: jacobi + average, the shipped scenes; 1: gauss-seidel + average)
 
     def validate(self) -> "ContactParameters":
         def positive(name, example):
@@ -113,6 +141,12 @@ class ContactParameters:
         choice("interpolation", INTERPOLATIONS)
         choice("local_model", LOCAL_POLICIES)
         choice("tool", TOOLS)
+        choice("compliance_free_motion", FREE_MOTIONS)
+        for name, low, example in (("max_patch_nodes", 1, "16 surface nodes"),
+                                   ("compliance_force_lag", 1, "2 frames (jacobi + average)")):
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
+                raise ContactParameterError(f"{name} must be an integer >= {low} (got {value!r}): e.g. {example}")
         if not isinstance(self.passivity_controller, (bool, np.bool_)):
             raise ContactParameterError(
                 f"passivity_controller must be True or False (got {self.passivity_controller!r})")
@@ -139,6 +173,8 @@ class ContactOutputs:
 
 def _float_array(name, value, n, fix):
     arr = np.asarray(value, dtype=np.float64)
+    if arr.shape == (n, 3) and arr.flags.c_contiguous and all_finite(arr):   # the common case
+        return arr
     if arr.size != n * 3:
         raise ContactInputError(
             f"{name} must hold {n} points ({n}x3 = {n * 3} values, flat or (n,3)) (got shape {arr.shape}): {fix}")
@@ -149,35 +185,39 @@ def _float_array(name, value, n, fix):
     return arr
 
 
+#: Newton iterations (then the Gauss-Seidel fallback) and relative tolerance of the compliance solve
+#: (the linear law needs 1-2 on a fixed contact set).
+COMPLIANCE_MAX_ITERATIONS = 8
+COMPLIANCE_TOLERANCE = 1e-13
+
 _WARMED = set()
 
 
-def _warm_up(ccd, interpolation) -> None:
+def _warm_up(interpolation) -> None:
     """Load (or compile) every kernel of the hot path once per process, at construction, so the
-    first haptic steps do not pay it (it takes up to seconds: a haptic loop cannot absorb that)."""
-    key = ("ccd", interpolation)
+    first haptic steps do not pay it (it takes up to seconds: a haptic loop cannot absorb that).
+    Runs a tiny scene through every stage: each policy, both detections, the frame-level CCD."""
+    key = ("contact", interpolation)
     if key in _WARMED:
         return
-    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    local = LocalModel.from_surface(0.0, tri, np.zeros((3, 3)), [[0, 1, 2]], policy="extrapolate")
-    local.probe_force(0.0, [0.2, 0.2, -0.1], [0.0, 0.0, -1.0])
-    p0 = np.array([[[0.2, 0.2, 1.0], *tri]])
-    p1 = np.array([[[0.2, 0.2, -1.0], *tri]])
-    kernels.ccd_candidates(tri, tri, np.array([[0, 1, 2]]), np.array([0, 1]), np.array([0]),
-                           p0[:, 0].copy(), p1[:, 0].copy(), 0.0, np.zeros(1, np.int8),
-                           np.zeros((1, 8, 3)), np.zeros(1, np.int64), np.zeros(1, np.int64))
-    kernels.max_displacement(tri, tri)
-    PassiveRenderer(1e-3, True).render(tri, tri, tri)
-    kernels.triangle_boxes(tri, tri, True, np.array([[0, 1, 2]]), np.zeros((1, 3)), np.zeros((1, 3)))
-    ccd.vertex_face(np.concatenate([p0, p1], axis=1))
-    if interpolation == "cubic":
-        ccd.vertex_face_spline(p0, p1, p1 - p0, p1 - p0, 1.0)
     _WARMED.add(key)
-
-
-def _import_broad_phase():
-    from . import aabb, ccd  # the AABB tree and CCD modules of this package
-    return aabb, ccd
+    pos = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.01, 0.01, 0.0]])
+    tri = np.array([[0, 1, 2], [1, 3, 2]])
+    W = np.eye(12) * 1e-4
+    for policy in LOCAL_POLICIES:
+        for detection in DETECTIONS:
+            params = ContactParameters(local_model=policy, detection=detection, interpolation=interpolation,
+                                       passivity_controller=True, margin=0.003)
+            model = ContactModel(tri, 4, 3, params)
+            model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
+            for k in range(3):
+                tool = np.array([[0.003, 0.003, 0.004], [0.003, 0.003, 0.002], [0.003, 0.003, -0.0005 * k]])
+                model.step(k * 1e-3, 1e-3, tool)
+            model.set_tissue_frame(0.01, pos + [0.0, 0.0, 0.001], np.full_like(pos, 0.1),
+                                   compliance=W, compliance_nodes=np.arange(4))
+            for k in range(3, 6):
+                model.step(k * 1e-3, 1e-3, np.array([[0.003, 0.003, 0.004], [0.003, 0.004, 0.001],
+                                                     [0.003, 0.003, -0.001]]))
 
 
 class ContactModel:
@@ -203,16 +243,18 @@ class ContactModel:
             raise ContactParameterError(
                 f"surface_triangles must index surface nodes 0..{n_surface - 1} "
                 f"(got ids {tri.min()}..{tri.max()}): give local surface ids")
-        self.aabb, self.ccd = _import_broad_phase()
-        _warm_up(self.ccd, self.params.interpolation)
+        _warm_up(self.params.interpolation)
         self.triangles = tri
         self.n_surface = int(n_surface)
         self.n_tool = int(n_tool)
         p = self.params
         self.radius = float(p.tool_radius) if p.tool == "centerline" else 0.0
         self.n_segments = self.n_tool - 1 if p.tool == "centerline" else 0
+        n_prim = self.n_tool + self.n_segments
         self._law = law_code(p.penalty_law)
-        self.local = LocalModel(p.local_model)
+        self.local = LocalModel(p.local_model, p.compliance_free_motion)
+        self.compliance = (WallCompliance(self.n_surface, n_prim, p.max_patch_nodes, p.compliance_force_lag)
+                           if p.local_model == "compliance" else None)
         self.tree = None
         # tissue frames
         self._frame_t = None
@@ -225,13 +267,23 @@ class ContactModel:
         self._active_warned = False     # the active-contact warning is given once
         self._tool_at_frame = None      # tool positions when the last frame arrived
         self._built_at = None           # tool positions when the local model was last queried
+        self._tool_vel = np.zeros((self.n_tool, 3))   # differenced tool velocities (buffer)
         self._inside = np.zeros(self.n_tool, np.int8)
         self._entry_normal = np.zeros((self.n_tool, 3))
-        # output buffers (allocation-light hot path)
+        # narrow phase -> response: contact data per primitive (nodes, then segments)
+        self._contact_face = np.full(n_prim, -1, np.int64)     # local face, -1 when none
+        self._contact_w = np.zeros((n_prim, 3))
+        self._contact_n = np.zeros((n_prim, 3))
+        self._contact_depth = np.zeros(n_prim)
+        self._contact_rate = np.zeros(n_prim)
+        self._contact_s = np.zeros(n_prim)
+        self._contact_point = np.zeros((n_prim, 3))
+        self._near_dist = np.zeros(self.n_tool)
+        self._fmag = np.zeros(n_prim)
+        # output buffers
         self._node_force = np.zeros((self.n_tool, 3))
         self._tissue_force = np.zeros((self.n_surface, 3))
-        self._contact_face = np.full(self.n_tool + self.n_segments, -1, np.int64)
-        self._contact_depth = np.zeros(self.n_tool + self.n_segments)
+        self._no_record = np.zeros((0, 3))
         self._pos0 = np.zeros((0, 3))
         self._box_lo = np.zeros((tri.shape[0], 3))
         self._box_hi = np.zeros((tri.shape[0], 3))
@@ -240,9 +292,25 @@ class ContactModel:
         self.ccd_hits = 0               # diagnostics: contacts started by CCD
         self.local_refreshes = 0
 
+    # ------------------------------------------------------------------ pickling
+    def __setstate__(self, state) -> None:
+        """Unpickled (or deep-copied): the kernels are loaded in this process before any step."""
+        self.__dict__.update(state)
+        _warm_up(self.params.interpolation)
+
     # ------------------------------------------------------------------ tissue frames
-    def set_tissue_frame(self, t, positions, velocities=None) -> None:
-        """New tissue frame: positions/velocities (n_surface,3) or flat, at time t (s)."""
+    def set_tissue_frame(self, t, positions, velocities=None, compliance=None, compliance_nodes=None,
+                         applied_force=None) -> None:
+        """New tissue frame at time t (s): positions/velocities (n_surface,3) or flat.
+
+        compliance_nodes: the surface node ids the tissue computed the compliance for (the patch
+        this model named, -1 padded, at most max_patch_nodes valid); compliance: their W (m/N),
+        (3n x 3n) or flat, n = len(compliance_nodes) or the number of valid ids (see
+        `rendering.check_compliance`). applied_force (optional, N, (n,3) or flat like the ids):
+        the contact force the tissue applied on those nodes over the step that produced this
+        frame; None: the model's own record (`compliance_force_lag`). Both None: no compliance
+        for this frame (renders as hold). Ignored by the hold and extrapolate local models.
+        """
         if not (_is_real(t) and math.isfinite(t)):
             raise ContactInputError(f"t must be a finite time in s (got {t!r})")
         fix = "give surface node positions in m for all surface nodes, in the order of surface_triangles"
@@ -251,31 +319,78 @@ class ContactModel:
                _float_array("tissue_velocities", velocities, self.n_surface, "give velocities in m/s").copy())
         if self._frame_t is not None and not float(t) > self._frame_t:
             raise ContactInputError(f"tissue frame time must increase (got {t} after {self._frame_t})")
-        # boxes cover the motion the local model may extrapolate to before the next frame
-        extrapolate = self.params.local_model == "extrapolate"
+        patch = self._check_patch(compliance, compliance_nodes, applied_force)
+        # broad phase: boxes cover the motion the local model may extrapolate to before the next frame
+        extrapolate = self.local.extrapolate
         end = pos + vel * self.params.frame_period if extrapolate else pos
-        kernels.triangle_boxes(pos, end, extrapolate, self.triangles, self._box_lo, self._box_hi)
+        aabb_kernels.triangle_boxes(pos, end, extrapolate, self.triangles, self._box_lo, self._box_hi)
         if self.tree is None:
-            self.tree = self.aabb.AABBTree.build(self._box_lo, self._box_hi)
+            self.tree = aabb.AABBTree.build(self._box_lo, self._box_hi)
             logger.debug("AABB tree built over %d surface triangles", self.triangles.shape[0])
         else:
             self.tree.refit(self._box_lo, self._box_hi)
         previous = (self._frame_t, self._frame_pos, self._frame_vel)
         self._frame_t, self._frame_pos, self._frame_vel = float(t), pos, vel
+        if self.compliance is not None:
+            self._take_compliance(*(patch or ()))
         if self._tool_prev is not None:
             # the query covers the tool's sweep since the last frame (for the frame-level CCD)
             self._refresh_local(self._tool_at_frame, self._tool_prev)
             if self.params.detection == "continuous" and previous[0] is not None:
                 self._frame_ccd(previous, self._tool_at_frame, self._tool_prev)
             self._tool_at_frame = self._tool_prev.copy()
+        elif self.compliance is not None:
+            self.compliance.map_local(self.local.vertices)
+
+    def _check_patch(self, compliance, compliance_nodes, applied_force):
+        """Validated (ids, W, applied (p,3) or None), or None when the frame brings no compliance."""
+        if compliance is None and compliance_nodes is None:
+            if applied_force is not None:
+                raise ContactInputError("applied_force was given without compliance and compliance_nodes: "
+                                        "give the force together with the W and the node ids it belongs to")
+            return None
+        if compliance is None or compliance_nodes is None:
+            missing = "compliance" if compliance is None else "compliance_nodes"
+            raise ContactInputError(f"{missing} is missing: give the compliance W together with the node ids "
+                                    "it was computed for (compliance_nodes), or neither")
+        try:
+            ids, W, where = check_compliance(compliance, compliance_nodes, self.n_surface,
+                                             self.params.max_patch_nodes)
+        except ComplianceError as exc:
+            raise ContactInputError(str(exc)) from None
+        applied = None
+        if applied_force is not None:
+            raw = np.asarray(applied_force, np.float64).reshape(-1)
+            n_given = int(np.asarray(compliance_nodes).size)
+            if raw.size == 3 * n_given:
+                applied = raw.reshape(n_given, 3)[where]
+            elif raw.size == 3 * ids.size:
+                applied = raw.reshape(-1, 3)
+            else:
+                raise ContactInputError(f"applied_force must hold 3 values per compliance node ({3 * n_given} or "
+                                        f"{3 * ids.size} values) (got {raw.size}): the force in N the tissue "
+                                        "applied on those nodes over its step")
+            if not np.isfinite(applied).all():
+                raise ContactInputError("applied_force contains NaN or inf: give the force the tissue applied in N")
+        return ids, W, applied
+
+    def _take_compliance(self, ids=None, W=None, applied=None) -> None:
+        c = self.compliance
+        c.close_interval()
+        if ids is None or ids.size == 0:
+            c.clear()
+        else:
+            c.set_frame(ids, W, applied, self._tissue_force)
+        logger.debug("frame t = %.6g s: compliance of %d patch nodes", self._frame_t, c.ids.size)
 
     def _refresh_local(self, tool0, tool1) -> None:
-        """Query the tree with boxes around the tool's sweep from tool0 to tool1 (plus margin).
+        """Broad phase: query the tree with boxes around the tool's sweep from tool0 to tool1 (plus
+        margin) and capture the local model.
 
         A node inside the tissue also reaches back along its entry normal by its last depth, so
         the faces it entered through stay in the local model however deep it has gone."""
         reach = self.params.margin + self.radius
-        lo, hi = self.aabb.point_boxes(tool0, positions_end=tool1, radius=reach)
+        lo, hi = aabb.point_boxes(tool0, positions_end=tool1, radius=reach)
         inside = np.flatnonzero(self._inside)
         if inside.size:
             back = tool1[inside] + self._entry_normal[inside] * self._contact_depth[inside, None]
@@ -284,10 +399,12 @@ class ContactModel:
         node_pairs = self.tree.query_boxes(lo, hi)[:, ::-1]
         seg_pairs = None
         if self.n_segments:
-            lo, hi = self.aabb.segment_boxes(tool1, radius=reach)
+            lo, hi = aabb.segment_boxes(tool1, radius=reach)
             seg_pairs = self.tree.query_boxes(lo, hi)[:, ::-1]
         self.local.capture(self._frame_t, self._frame_pos, self._frame_vel, self.triangles,
                            node_pairs, self.n_tool, seg_pairs, self.n_segments)
+        if self.compliance is not None:
+            self.compliance.map_local(self.local.vertices)
         self._built_at = tool1.copy()
         self._pos0 = np.zeros_like(self.local.positions)
         cap = self.local.node_faces.size
@@ -320,9 +437,9 @@ class ContactModel:
         pos0 = np.ascontiguousarray(p_prev[verts])
         pos1 = np.ascontiguousarray(self._frame_pos[verts])
         queries, q_node, q_face = self._ccd_buffers
-        count = kernels.ccd_candidates(pos0, pos1, self.local.triangles, self.local.node_ptr,
-                                       self.local.node_faces, tool0, tool1, self.radius, self._inside,
-                                       queries, q_node, q_face)
+        count = narrow_phase.ccd_candidates(pos0, pos1, self.local.triangles, self.local.node_ptr,
+                                            self.local.node_faces, tool0, tool1, self.radius, self._inside,
+                                            queries, q_node, q_face)
         if count == 0:
             return
         q, q_node, q_face = queries[:count], q_node[:count], q_face[:count]
@@ -332,14 +449,35 @@ class ContactModel:
             tool_vel = (tool1[q_node] - tool0[q_node]) / period
             v0 = np.concatenate([tool_vel[:, None], v_prev[verts][tri]], axis=1)
             v1 = np.concatenate([tool_vel[:, None], self._frame_vel[verts][tri]], axis=1)
-            hit, toi = self.ccd.vertex_face_spline(q[:, :4], q[:, 4:], v0, v1, period)
+            hit, toi = ccd.vertex_face_spline(q[:, :4], q[:, 4:], v0, v1, period)
         else:
-            hit, toi = self.ccd.vertex_face(q)
+            hit, toi = ccd.vertex_face(q)
         self._mark_entries(hit, toi, q_node, q_face, self._local_normals(pos1))
 
     # ------------------------------------------------------------------ haptic step
     def step(self, t, dt, tool_positions, tool_velocities=None) -> ContactOutputs:
         """One haptic step over [t, t+dt]; the contact is evaluated at t + dt."""
+        tool0, tool1, tool_vel = self._tool_inputs(t, dt, tool_positions, tool_velocities)
+        if self._built_at is None or max_displacement(tool1, self._built_at) > 0.5 * self.params.margin:
+            self._refresh_local(tool0, tool1)                        # broad phase
+        if self._tool_at_frame is None:
+            self._tool_at_frame = tool1.copy()
+        pos0, pos1 = self._render_geometry(float(t) + float(dt), float(dt))   # rendering: where the wall is
+        self._narrow_phase(pos0, pos1, tool0, tool1, tool_vel)
+        max_depth, count, energy = self._response(float(dt))
+        if self.compliance is not None:
+            self._name_patch(tool1)
+        node_force = self._passivity(tool1, tool_vel, float(dt))
+        self._warn_if_active(float(energy), t)
+        self._tool_prev = tool1.copy()
+        return ContactOutputs(
+            tool_force=node_force.sum(axis=0), tip_force=node_force[-1].copy(),
+            tissue_contact_force=self._tissue_force, node_forces=self._node_force,
+            penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
+            passivity_energy=self._renderer.energy)
+
+    def _tool_inputs(self, t, dt, tool_positions, tool_velocities):
+        """Validated (tool0, tool1, tool velocities); warns once about tunnelling (discrete)."""
         if self._frame_t is None:
             raise ContactInputError("no tissue frame yet: call set_tissue_frame(t, positions, velocities) "
                                     "before step()")
@@ -351,7 +489,8 @@ class ContactModel:
                              "give the tool point positions in m")
         tool0 = tool1 if self._tool_prev is None else self._tool_prev
         if tool_velocities is None:
-            tool_vel = (tool1 - tool0) / dt
+            tool_vel = self._tool_vel
+            difference_velocity(tool1, tool0, float(dt), tool_vel)
         else:
             tool_vel = _float_array("tool_velocities", tool_velocities, self.n_tool,
                                     "give the tool point velocities in m/s, or None to difference positions")
@@ -359,51 +498,98 @@ class ContactModel:
             # Discrete detection sees only where the tool is at each sample: a tool that moves
             # farther than the margin in one step can pass through a thin wall unseen (measured by
             # the extremes study: a probe at 10 m/s crossed the 1.5 mm AAA wall without a contact).
-            jump = kernels.max_displacement(tool1, tool0)
+            jump = max_displacement(tool1, tool0)
             if jump > self.params.margin:
                 self._tunnel_warned = True
                 logger.warning(
                     "the tool moved %.3g mm in one %.3g ms step (t = %.6g s), more than the margin %.3g mm: with "
                     "detection = 'discrete' a contact can be missed (tunnelling); use detection = 'continuous'",
                     1e3 * jump, 1e3 * dt, t, 1e3 * self.params.margin)
-        if self._built_at is None or kernels.max_displacement(tool1, self._built_at) > 0.5 * self.params.margin:
-            self._refresh_local(tool0, tool1)
-        if self._tool_at_frame is None:
-            self._tool_at_frame = tool1.copy()
-        t_eval = float(t) + float(dt)
+        return tool0, tool1, tool_vel
+
+    def _render_geometry(self, t_eval, dt):
+        """Local model positions at the step start and end: free motion, plus the wall's yielding
+        under the last step's patch force (compliance; the response corrects it for this step)."""
         local = self.local
         pos1 = local.positions_at(t_eval)
+        c = self.compliance
+        if c is not None and c.active:
+            rendering_kernels.add_displacement(pos1, c.slot, c.u)
+        pos0 = pos1
+        if local.extrapolate and self.params.detection == "continuous":
+            pos0 = self._pos0
+            rendering_kernels.local_positions(local.frame_positions, local.frame_velocities,
+                                              t_eval - dt - local.t_frame, True, pos0)
+            if c is not None and c.active:
+                rendering_kernels.add_displacement(pos0, c.slot, c.u)
+        return pos0, pos1
+
+    def _narrow_phase(self, pos0, pos1, tool0, tool1, tool_vel) -> None:
+        """CCD of the nodes crossing a face plane during the step, then the closest facets."""
+        local = self.local
         if self.params.detection == "continuous" and local.node_faces.size:
-            pos0 = pos1
-            if local.extrapolate:
-                pos0 = self._pos0
-                kernels.local_positions(local.frame_positions, local.frame_velocities,
-                                        t_eval - dt - local.t_frame, True, pos0)
             queries, q_node, q_face = self._ccd_buffers
-            count = kernels.ccd_candidates(pos0, pos1, local.triangles, local.node_ptr, local.node_faces,
-                                           tool0, tool1, self.radius, self._inside, queries, q_node, q_face)
+            count = narrow_phase.ccd_candidates(pos0, pos1, local.triangles, local.node_ptr, local.node_faces,
+                                                tool0, tool1, self.radius, self._inside, queries, q_node, q_face)
             if count:
-                hit, toi = self.ccd.vertex_face(queries[:count])
+                hit, toi = ccd.vertex_face(queries[:count])
                 self._mark_entries(hit, toi, q_node[:count], q_face[:count], self._local_normals(pos1))
+        c = self.compliance
+        band = c.band if c is not None and c.active else 0.0
+        narrow_phase.proximity(pos1, local.velocities, local.triangles, local.node_ptr, local.node_faces,
+                               local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius, band,
+                               self._inside, self._entry_normal, self._contact_face, self._contact_w,
+                               self._contact_n, self._contact_depth, self._contact_rate, self._contact_s,
+                               self._contact_point, self._near_dist)
+
+    def _response(self, dt):
+        """Penalty forces: against the rigid local model, or solved against the yielding wall
+        (one kernel: solve, distribution, the patch's new load and displacement)."""
         p = self.params
-        max_depth, count, energy = kernels.contact_step(
-            pos1, local.velocities, local.triangles, local.vertices,
-            local.node_ptr, local.node_faces, local.seg_ptr, local.seg_faces,
-            tool1, tool_vel, self.radius, p.stiffness, p.damping, self._law, p.penalty_length,
-            self._inside, self._entry_normal,
-            self._node_force, self._tissue_force, self._contact_face, self._contact_depth)
+        c = self.compliance
+        if c is not None and c.active:
+            rendering_kernels.compliance_response(
+                self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
+                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, c.slot, c.W, c.g, c.g_new,
+                c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt,
+                COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, c._act, c._Wa, c._D, c._J, c._work,
+                self._node_force, self._tissue_force, c.record[c.current], c.out)
+            c.record_steps[c.current] += 1
+            max_depth, count, energy, iterations, c.band = c.out.tolist()
+            c.iterations = int(iterations)
+            if c.iterations < 0:
+                c.unconverged += 1
+                if c.unconverged == 1:
+                    logger.warning("compliance solve did not converge (%d Newton iterations, then %d Gauss-Seidel "
+                                   "sweeps; kept the last iterate); reported once", COMPLIANCE_MAX_ITERATIONS,
+                                   rendering_kernels.GAUSS_SEIDEL_SWEEPS)
+            return max_depth, count, energy
+        penalty_kernels.penalty_forces(self._contact_face, self._contact_depth, self._contact_rate,
+                                       self._law, p.stiffness, p.damping, p.penalty_length, self._fmag)
+        record = self._no_record
+        if c is not None:
+            record = c.record[c.current]
+            c.record_steps[c.current] += 1
+        return penalty_kernels.distribute(
+            self._fmag, self._contact_face, self._contact_w, self._contact_n, self._contact_s, self._contact_depth,
+            self.local.triangles, self.local.vertices, self.n_tool, self._law, p.stiffness, p.penalty_length,
+            self._node_force, self._tissue_force, record)
+
+    def _name_patch(self, tool1) -> None:
+        c = self.compliance
+        local = self.local
+        c.patch_count = rendering_kernels.name_patch(
+            local.positions, local.vertices, local.triangles, self._contact_face, self._contact_point, tool1,
+            self._near_dist, self.params.margin + self.radius, c.max_nodes, c._key_class, c._key_dist,
+            c._key_id, c.patch)
+
+    def _passivity(self, tool1, tool_vel, dt) -> np.ndarray:
+        p = self.params
         if self._renderer is None:
             self._renderer = PassiveRenderer(dt, p.passivity_controller, p.passivity_max_damping)
-        self._renderer.period = float(dt)
-        node_force = self._renderer.render(tool1, tool_vel, self._node_force)
-        self._node_force[:] = node_force
-        self._warn_if_active(float(energy), t)
-        self._tool_prev = tool1.copy()
-        return ContactOutputs(
-            tool_force=node_force.sum(axis=0), tip_force=node_force[-1].copy(),
-            tissue_contact_force=self._tissue_force, node_forces=self._node_force,
-            penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
-            passivity_energy=self._renderer.energy)
+        self._renderer.period = dt
+        self._renderer.render_in_place(tool1, tool_vel, self._node_force)
+        return self._node_force
 
     def _warn_if_active(self, potential: float, t: float) -> None:
         """Warn once when the contact has given back more energy than it ever stored.
@@ -427,22 +613,50 @@ class ContactModel:
                 "" if self.params.passivity_controller else ", or set passivity_controller = true")
 
     # ------------------------------------------------------------------ state (FMU rollback)
-    _STATELESS = ("aabb", "ccd", "tree", "triangles", "params", "n_surface", "n_tool", "radius",
-                  "n_segments", "_law")
+    _STATELESS = ("tree", "triangles", "params", "n_surface", "n_tool", "radius", "n_segments", "_law",
+                  "_no_record")
 
     def get_state(self) -> dict:
-        """A deep copy of everything that changes at run time (frames, local model, contact side
-        memory, passivity energy, previous tool positions), for set_state (rollback)."""
+        """A deep copy of everything that changes at run time (frames, local model, compliance,
+        contact side memory, passivity energy, previous tool positions), for set_state (rollback)."""
         return copy.deepcopy({k: v for k, v in self.__dict__.items() if k not in self._STATELESS})
 
     def set_state(self, state: dict) -> None:
         """Restore a get_state() snapshot; the AABB tree is refitted to the restored frame."""
         self.__dict__.update(copy.deepcopy(state))
         if self._frame_pos is not None:
-            extrapolate = self.params.local_model == "extrapolate"
+            extrapolate = self.local.extrapolate
             end = self._frame_pos + self._frame_vel * self.params.frame_period if extrapolate else self._frame_pos
-            kernels.triangle_boxes(self._frame_pos, end, extrapolate, self.triangles, self._box_lo, self._box_hi)
+            aabb_kernels.triangle_boxes(self._frame_pos, end, extrapolate, self.triangles, self._box_lo,
+                                        self._box_hi)
             self.tree.refit(self._box_lo, self._box_hi)
+
+    # ------------------------------------------------------------------ the patch (compliance)
+    def patch_nodes(self) -> np.ndarray:
+        """(max_patch_nodes,) int64: the surface nodes this model names for the compliance, in or
+        near the contact, ascending ids, padded with -1 (all -1 with the hold and extrapolate
+        local models, or when the tool is farther than margin + tool radius from the surface).
+        Updated by every step: the tissue reads it and sends W back for these ids."""
+        if self.compliance is None:
+            return np.full(self.params.max_patch_nodes, -1, np.int64)
+        return self.compliance.patch.copy()
+
+    @property
+    def patch_count(self) -> int:
+        """Number of valid ids in patch_nodes()."""
+        return 0 if self.compliance is None else int(self.compliance.patch_count)
+
+    @property
+    def compliance_nodes(self) -> np.ndarray:
+        """The node ids of the compliance in use (those of the last frame's W), empty when none."""
+        return np.zeros(0, np.int64) if self.compliance is None else self.compliance.ids.copy()
+
+    @property
+    def wall_displacement(self) -> np.ndarray:
+        """(p,3) the yielding of the compliance nodes after the last step, W (g - g_applied), m."""
+        if self.compliance is None:
+            return np.zeros((0, 3))
+        return self.compliance.u.reshape(-1, 3).copy()
 
     # ------------------------------------------------------------------ diagnostics
     @property

@@ -24,54 +24,11 @@ cap leaves undissipated is taken over the following samples.
 import math
 
 import numpy as np
-
-from . import kernels
-
+from numba import njit
 
 
 class PassivityError(ValueError):
     """Invalid input to the passivity observer/controller."""
-
-
-class PassivityObserver:
-    """Energy that has flowed into the environment through the haptic port (>= 0 when passive)."""
-
-    def __init__(self):
-        self.energy = 0.0
-        self.min_energy = 0.0
-        self._force = None       # force held since the previous sample (on the tool)
-        self._position = None
-
-    def reset(self) -> None:
-        self.__init__()
-
-    def update(self, position, force) -> float:
-        """Record sample n: the tool position x(n) and the force F(n) that will be held until the
-        next sample. Adds the work of the previously held force over x(n) - x(n-1); returns E(n)."""
-        x = np.asarray(position, np.float64)
-        f = np.asarray(force, np.float64)
-        if self._position is not None:
-            self.energy -= float(np.sum(self._force * (x - self._position)))
-            self.min_energy = min(self.min_energy, self.energy)
-        self._position = x.copy()
-        self._force = f.copy()
-        return self.energy
-
-    def observe(self, position) -> float:
-        """E(n) including the work of the held force up to `position`, without recording a sample."""
-        if self._position is None:
-            return self.energy
-        return self.energy - float(np.sum(self._force * (np.asarray(position, np.float64) - self._position)))
-
-
-def controller_damping(energy: float, velocity, period: float, max_damping: float = math.inf) -> float:
-    """Passivity controller gain alpha = min(-E / (T v.v), max_damping) when E < 0, else 0 (N s/m)."""
-    if period <= 0.0:
-        raise PassivityError(f"period must be > 0 (got {period}): give the haptic sample time in s")
-    vv = float(np.sum(np.square(velocity)))
-    if energy >= 0.0 or vv <= 0.0:
-        return 0.0
-    return min(-energy / (period * vv), max_damping)
 
 
 class PassiveRenderer:
@@ -80,7 +37,8 @@ class PassiveRenderer:
     `render(position, velocity, force)` observes the port with the raw `force` (on the tool; arrays
     (n, 3)), and if the controller is on and the port has turned active, adds -alpha v; returns the
     force to apply (held until the next sample) and records it for the next energy increment.
-    Same arithmetic as PassivityObserver + controller_damping, in one numba kernel (hot path).
+    One numba kernel (hot path); tests/haptic_helpers.py holds the plain-Python observer and
+    controller gain it is checked against.
     """
 
     def __init__(self, period: float, controller: bool = True, max_damping: float = math.inf):
@@ -102,16 +60,21 @@ class PassiveRenderer:
         position = np.ascontiguousarray(position, np.float64).reshape(-1, 3)
         velocity = np.ascontiguousarray(velocity, np.float64).reshape(-1, 3)
         force = np.array(force, np.float64).reshape(-1, 3)
+        self.render_in_place(position, velocity, force)
+        return force
+
+    def render_in_place(self, position, velocity, force) -> None:
+        """`render` for (n,3) C-contiguous float64 arrays (the model's buffers): `force` is changed
+        in place (no conversion, no copy: the 1 kHz path)."""
         if self._prev_position is None or self._prev_position.shape != position.shape:
             self._prev_position = np.zeros_like(position)
             self._prev_force = np.zeros_like(position)
             self._has_prev = False
-        self.energy, self.last_alpha = kernels.passivity_step(
+        self.energy, self.last_alpha = passivity_step(
             position, velocity, force, self._prev_position, self._prev_force, self._has_prev, self.energy,
             self.period, self.controller, self.max_damping)
         self._has_prev = True
         self.min_energy = min(self.min_energy, self.energy)
-        return force
 
     def observe(self, position) -> float:
         """Port energy including the work of the held force up to `position` (no sample recorded)."""
@@ -119,3 +82,37 @@ class PassiveRenderer:
             return self.energy
         position = np.asarray(position, np.float64).reshape(-1, 3)
         return self.energy - float(np.sum(self._prev_force * (position - self._prev_position)))
+
+
+@njit(cache=True)
+def passivity_step(position, velocity, force, prev_position, prev_force, has_prev, energy, period,
+                   controller, max_damping):
+    """One sample of the passivity observer/controller (see passivity.py for the convention).
+
+    Adds the work of the held prev_force over position - prev_position to the port energy, then,
+    when the controller is on and the energy is negative, adds -alpha velocity to `force` (in place)
+    with alpha = min(-E / (T v.v), max_damping). Stores position and force as the new held sample.
+    Returns (energy, alpha).
+    """
+    if has_prev:
+        work = 0.0
+        for i in range(position.shape[0]):
+            for d in range(3):
+                work += prev_force[i, d] * (position[i, d] - prev_position[i, d])
+        energy -= work
+    alpha = 0.0
+    if controller and energy < 0.0:
+        vv = 0.0
+        for i in range(velocity.shape[0]):
+            for d in range(3):
+                vv += velocity[i, d] * velocity[i, d]
+        if vv > 0.0:
+            alpha = min(-energy / (period * vv), max_damping)
+            for i in range(force.shape[0]):
+                for d in range(3):
+                    force[i, d] -= alpha * velocity[i, d]
+    for i in range(position.shape[0]):
+        for d in range(3):
+            prev_position[i, d] = position[i, d]
+            prev_force[i, d] = force[i, d]
+    return energy, alpha

@@ -1,0 +1,293 @@
+"""Haptic rendering between tissue frames: the local models of the 1 kHz loop.
+
+At each tissue frame (about 30 Hz) the facets near the tool (found by the AABB tree with a
+margin) are copied with their vertex positions and velocities (`LocalModel`). Between frames the
+1 kHz loop renders the contact against this copy only, moved by one of three local models:
+
+- "compliance" (default): the wall yields at once under the contact force through the compliance
+  of the patch from Tissue (`WallCompliance`, as SOFA's LCPForceFeedback hands its haptic thread
+  the constraint compliance W of the last simulation step):
+      x = x_free + W (g - g_applied)
+  x_free the frame positions (held, or extrapolated with compliance_free_motion = "extrapolate"),
+  g the force this haptic step puts on the patch nodes, g_applied the force the tissue applied
+  over the step that produced the frame (already contained in the frame positions: the frame is
+  x_free + W g_applied, so the yielding is counted once). The contact is solved with the penalty
+  law against the yielding wall (`rendering_kernels.compliance_forces`). Until a frame brings a
+  compliance it renders exactly as "hold".
+- "hold":        p(t) = p_frame,                        surface velocity 0
+- "extrapolate": p(t) = p_frame + v_frame (t - t_frame), surface velocity v_frame (first order)
+  (frozen facets, kept for the stability studies)
+
+The surface velocity is that of the geometry the force is computed against, so the damping term
+of F = -k dist n - b (v . n) n always uses the tool velocity relative to the rendered surface (with
+compliance, plus the wall's yielding velocity over the step).
+
+Candidate pairs are stored per tool primitive (CSR: for node i, faces node_faces[node_ptr[i]:
+node_ptr[i+1]], local face ids), so the narrow phase of a haptic step visits only the faces the
+broad phase found near that primitive.
+
+The patch (compliance only). The contact model names, at every haptic step, the surface nodes in
+or near the contact: at most `max_patch_nodes` N, ascending ids padded with -1
+(`ContactModel.patch_nodes()`; ranking in `rendering_kernels.name_patch`). The tissue computes
+the compliance W of the nodes it last read and sends them back with W (compliance_nodes): W is
+always used for the ids it was computed for, whatever the contact names now. So
+- a node that dropped out of the contact's naming but is in W keeps its compliance for the frame;
+- a contact-face vertex that came in after the tissue read the patch has no compliance until the
+  next frame: it is rendered rigid (held at the frame position), and a contact none of whose
+  vertices is in W renders exactly as "hold";
+- a frame without compliance (None, or no valid id) renders as "hold" until the next frame.
+"""
+import logging
+
+import numpy as np
+
+from . import rendering_kernels as kernels
+
+logger = logging.getLogger(__name__)
+
+LOCAL_POLICIES = ("compliance", "hold", "extrapolate")
+FREE_MOTIONS = ("hold", "extrapolate")
+
+#: W may be asymmetric by this fraction of its largest entry (the tissue's triangular solves).
+SYMMETRY_TOLERANCE = 1e-6
+#: W's smallest eigenvalue may be negative by this fraction of its largest one (round-off).
+PSD_TOLERANCE = 1e-9
+
+
+class LocalModelError(ValueError):
+    """Invalid input to the local model."""
+
+
+class ComplianceError(ValueError):
+    """An invalid compliance block W or patch node list from the tissue."""
+
+
+def _csr(pairs: np.ndarray, n_rows: int, face_map: np.ndarray):
+    """CSR (ptr, local faces) of (k,2) pairs (row, global face) with faces mapped to local ids."""
+    if pairs.shape[0] == 0:
+        return np.zeros(n_rows + 1, np.int64), np.zeros(0, np.int64)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    rows = pairs[order, 0]
+    faces = face_map[pairs[order, 1]]
+    ptr = np.zeros(n_rows + 1, np.int64)
+    np.cumsum(np.bincount(rows, minlength=n_rows), out=ptr[1:])
+    return ptr, np.ascontiguousarray(faces, dtype=np.int64)
+
+
+class LocalModel:
+    """Facets near the tool, captured at a tissue frame; their free motion between frames."""
+
+    def __init__(self, policy: str = "compliance", free_motion: str = "hold"):
+        if policy not in LOCAL_POLICIES:
+            raise LocalModelError(f"local_model must be one of {LOCAL_POLICIES} (got {policy!r})")
+        if free_motion not in FREE_MOTIONS:
+            raise LocalModelError(f"compliance_free_motion must be one of {FREE_MOTIONS} (got {free_motion!r})")
+        self.policy = policy
+        self.extrapolate = policy == "extrapolate" or (policy == "compliance" and free_motion == "extrapolate")
+        self.t_frame = 0.0
+        self.faces = np.zeros(0, np.int64)            # global face ids
+        self.vertices = np.zeros(0, np.int64)         # global (surface) vertex ids, ascending
+        self.triangles = np.zeros((0, 3), np.int64)   # local vertex ids
+        self.frame_positions = np.zeros((0, 3))
+        self.frame_velocities = np.zeros((0, 3))
+        self.positions = np.zeros((0, 3))             # rendered at the last positions_at(t) (+ yielding)
+        self.velocities = np.zeros((0, 3))
+        self.node_ptr = np.zeros(1, np.int64)
+        self.node_faces = np.zeros(0, np.int64)
+        self.seg_ptr = np.zeros(1, np.int64)
+        self.seg_faces = np.zeros(0, np.int64)
+
+    def capture(self, t_frame, positions, velocities, triangles, node_pairs, n_nodes,
+                seg_pairs=None, n_segments=0) -> None:
+        """Copy the facets named by the candidate pairs out of a tissue frame.
+
+        positions, velocities (n_surface,3) at t_frame; triangles (t,3) surface triangles;
+        node_pairs (k,2) (tool node, global face); seg_pairs (k2,2) (tool segment, global face).
+        """
+        node_pairs = np.asarray(node_pairs, np.int64).reshape(-1, 2)
+        seg_pairs = np.zeros((0, 2), np.int64) if seg_pairs is None else np.asarray(
+            seg_pairs, np.int64).reshape(-1, 2)
+        faces = np.unique(np.concatenate([node_pairs[:, 1], seg_pairs[:, 1]]))
+        face_map = np.full(triangles.shape[0], -1, np.int64)
+        face_map[faces] = np.arange(faces.size)
+        vertices, local_tri = np.unique(triangles[faces].reshape(-1), return_inverse=True)
+        self.t_frame = float(t_frame)
+        self.faces = faces
+        self.vertices = vertices
+        self.triangles = np.ascontiguousarray(local_tri.reshape(-1, 3), dtype=np.int64)
+        self.frame_positions = np.ascontiguousarray(positions[vertices], dtype=np.float64)
+        self.frame_velocities = np.ascontiguousarray(velocities[vertices], dtype=np.float64)
+        self.positions = self.frame_positions.copy()
+        self.velocities = (self.frame_velocities.copy() if self.extrapolate
+                           else np.zeros_like(self.frame_velocities))
+        self.node_ptr, self.node_faces = _csr(node_pairs, n_nodes, face_map)
+        self.seg_ptr, self.seg_faces = _csr(seg_pairs, n_segments, face_map)
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.size)
+
+    def positions_at(self, t, out=None) -> np.ndarray:
+        """Free-motion vertex positions at time t (hold or first-order extrapolation)."""
+        out = self.positions if out is None else out
+        kernels.local_positions(self.frame_positions, self.frame_velocities, float(t) - self.t_frame,
+                                self.extrapolate, out)
+        return out
+
+
+def _node_ids(nodes, n_surface, max_nodes):
+    """(valid ids (p,), their positions in the given array) from a -1 padded id list."""
+    raw = np.asarray(nodes)
+    if raw.ndim != 1:
+        raw = raw.reshape(-1)
+    if raw.size and not np.issubdtype(raw.dtype, np.integer):
+        as_float = np.asarray(raw, np.float64)
+        if not (np.isfinite(as_float).all() and np.all(as_float == np.round(as_float))):
+            raise ComplianceError(f"compliance_nodes must hold integer surface node ids (-1 for unused slots) "
+                                  f"(got {raw[:8].tolist()}...)")
+    ids = raw.astype(np.int64)
+    where = np.flatnonzero(ids >= 0)
+    valid = ids[where]
+    bad = np.flatnonzero((ids < -1) | (ids >= n_surface))
+    if bad.size:
+        raise ComplianceError(f"compliance_nodes must be surface node ids 0..{n_surface - 1} or -1 (unused) "
+                              f"(got {ids[bad[:5]].tolist()} at slots {bad[:5].tolist()})")
+    if valid.size > max_nodes:
+        raise ComplianceError(f"compliance_nodes names {valid.size} nodes, more than max_patch_nodes = {max_nodes}")
+    if np.unique(valid).size != valid.size:
+        raise ComplianceError(f"compliance_nodes repeats node ids ({np.sort(valid).tolist()}): each node once")
+    return valid, where
+
+
+def check_compliance(compliance, nodes, n_surface, max_nodes):
+    """Validated (ids (p,) int64, W (3p,3p) symmetrised, slots used) from the tissue's outputs.
+
+    nodes: the patch node ids W was computed for, -1 padded (any length >= p). compliance: W as
+    (3n,3n) or flat (3n)^2 for n = len(nodes) (rows/columns of the -1 slots are ignored) or for
+    n = p, the valid ids only. W must be finite, symmetric within SYMMETRY_TOLERANCE of its largest
+    entry and positive semi-definite within PSD_TOLERANCE (ComplianceError otherwise).
+    """
+    ids, where = _node_ids(nodes, n_surface, max_nodes)
+    p = ids.size
+    n_given = int(np.asarray(nodes).size)
+    w = np.asarray(compliance, dtype=np.float64)
+    size = w.size
+    if size == (3 * n_given) ** 2:
+        full = w.reshape(3 * n_given, 3 * n_given)
+        cols = (3 * where[:, None] + np.arange(3)).reshape(-1)
+        w = full[np.ix_(cols, cols)]
+    elif size == (3 * p) ** 2:
+        w = w.reshape(3 * p, 3 * p)
+    else:
+        raise ComplianceError(
+            f"compliance must be a (3n x 3n) matrix for the n = {n_given} compliance_nodes slots "
+            f"({(3 * n_given) ** 2} values) or for the {p} valid ids ({(3 * p) ** 2} values) (got shape "
+            f"{np.shape(compliance)}): give W in m/N, rows and columns (x, y, z) per node in the order of the ids")
+    if not np.isfinite(w).all():
+        bad = np.argwhere(~np.isfinite(w))[0]
+        raise ComplianceError(f"compliance contains NaN or inf (first at row {bad[0]}, column {bad[1]}): "
+                              "the tissue's solve for W failed")
+    if p == 0:
+        return ids, np.zeros((0, 0)), where
+    scale = float(np.abs(w).max())
+    asym = float(np.abs(w - w.T).max())
+    if asym > SYMMETRY_TOLERANCE * scale:
+        raise ComplianceError(f"compliance is not symmetric: max |W - W^T| = {asym:.3g} m/N, more than "
+                              f"{SYMMETRY_TOLERANCE:g} of its largest entry {scale:.3g} m/N (a compliance of a "
+                              "conservative linear system is symmetric): check the node order of rows and columns")
+    w = 0.5 * (w + w.T)
+    if scale > 0.0:
+        lowest = float(np.linalg.eigvalsh(w)[0])
+        if lowest < -PSD_TOLERANCE * scale * w.shape[0]:
+            raise ComplianceError(f"compliance is not positive semi-definite: smallest eigenvalue {lowest:.3g} m/N "
+                                  f"(largest entry {scale:.3g} m/N): a wall cannot move against the force on it")
+    return ids, np.ascontiguousarray(w), where
+
+
+class WallCompliance:
+    """State of the compliance local model: the patch's W, forces and the named patch.
+
+    ids (p,) the nodes W belongs to; W (3p,3p); g_applied (3p) the force the tissue applied over
+    the step that produced the frame; g (3p) the patch force of the last haptic step; u (3p) the
+    wall's displacement W (g - g_applied); slot (local vertex -> index in ids or -1).
+    The record: the mean tissue force per frame interval (the last `lag + 1` intervals), used as
+    g_applied when the tissue does not report it.
+    """
+
+    def __init__(self, n_surface: int, n_primitives: int, max_nodes: int, lag: int):
+        self.max_nodes = int(max_nodes)
+        self.lag = int(lag)
+        self.ids = np.zeros(0, np.int64)
+        self.W = np.zeros((0, 0))
+        self.g_applied = np.zeros(0)
+        self.g = np.zeros(0)
+        self.g_new = np.zeros(0)
+        self.u = np.zeros(0)
+        self.slot = np.zeros(0, np.int64)
+        self.active = False
+        self.band = 0.0                 # largest yielding |u| of a node: how far the wall may come back
+        self.iterations = 0             # Newton iterations of the last solve (-1: not converged)
+        self.unconverged = 0            # diagnostics: solves that hit the iteration cap
+        # the named patch (output) and its work arrays
+        self.patch = np.full(self.max_nodes, -1, np.int64)
+        self.patch_count = 0
+        self._key_class = np.zeros(self.max_nodes, np.int64)
+        self._key_dist = np.zeros(self.max_nodes)
+        self._key_id = np.zeros(self.max_nodes, np.int64)
+        # Newton work arrays (sized for every primitive in contact at once)
+        m = int(n_primitives)
+        self._act = np.zeros(m, np.int64)
+        self._Wa = np.zeros((m, 3 * self.max_nodes))
+        self._D = np.zeros((m, m))
+        self._J = np.zeros((m, m))
+        self._work = np.zeros((3, m))            # rhs, delta0, f of the solve
+        self.out = np.zeros(5)                   # max depth, contact count, energy, iterations, largest |u|
+        # record of the force sent to the tissue, per frame interval
+        self.record = np.zeros((self.lag + 1, n_surface, 3))
+        self.record_steps = np.zeros(self.lag + 1, np.int64)
+        self.current = 0
+
+    def close_interval(self) -> None:
+        """A frame arrived: the current interval's record is complete; start the next one."""
+        self.current = (self.current + 1) % (self.lag + 1)
+        self.record[self.current] = 0.0
+        self.record_steps[self.current] = 0
+
+    def recorded_force(self, ids) -> np.ndarray:
+        """Mean tissue force at `ids` over the interval `lag` frames back, (p,3)."""
+        index = (self.current - self.lag) % (self.lag + 1)
+        steps = self.record_steps[index]
+        if steps == 0:
+            return np.zeros((ids.size, 3))
+        return self.record[index][ids] / steps
+
+    def set_frame(self, ids, W, applied, last_tissue_force) -> None:
+        """New W for nodes `ids`; g_applied from `applied` (p,3) or None (the record)."""
+        self.ids = ids
+        self.W = W
+        p = ids.size
+        self.active = p > 0
+        g_applied = self.recorded_force(ids) if applied is None else applied
+        self.g_applied = np.ascontiguousarray(g_applied, np.float64).reshape(-1)
+        self.g = np.ascontiguousarray(last_tissue_force[ids], np.float64).reshape(-1)
+        self.g_new = np.zeros(3 * p)
+        self.u = np.zeros(3 * p)
+        self.band = 0.0
+        if self.active:
+            self.band = kernels.patch_displacement(self.W, self.g, self.g_applied, self.u)
+
+    def clear(self) -> None:
+        """A frame without compliance: render as hold until the next one."""
+        self.set_frame(np.zeros(0, np.int64), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)))
+
+    def map_local(self, local_vertices) -> None:
+        """slot of every local model vertex (its index in ids, -1 when it has no compliance)."""
+        slot = np.full(local_vertices.size, -1, np.int64)
+        if self.ids.size:
+            order = np.argsort(self.ids)
+            sorted_ids = self.ids[order]
+            at = np.searchsorted(sorted_ids, local_vertices)
+            at = np.minimum(at, sorted_ids.size - 1)
+            hit = sorted_ids[at] == local_vertices
+            slot[hit] = order[at[hit]]
+        self.slot = slot

@@ -1,0 +1,429 @@
+"""Numba kernels of the haptic rendering between tissue frames (the local models).
+
+Arrays in, preallocated arrays out, no validation, no allocation (see `rendering` for the models
+and `penalty_kernels` for the laws).
+
+Compliance local model, notation: the patch holds p surface nodes with the compliance block W
+(3p x 3p, m/N, symmetric positive semi-definite); `slot[v]` is the patch slot of local model
+vertex v (-1 when the vertex has no compliance: it is rendered rigid). Contact i (a tool primitive
+against local face F_i, barycentric weights w_i, outward normal n_i) loads the patch with
+g = -sum_i a_i f_i, where a_i (3p) holds w_ij n_i in the slots of the face's vertices; the wall
+moves by u = W (g - g_applied), so the depth of contact i changes by a_i . du and
+
+    delta_i(f) = depth_i - a_i^T W (g(f) - g_prev) = delta0_i - sum_j D_ij f_j,   D = A^T W A
+
+(depth_i measured against the wall predicted with the previous step's patch force g_prev). The
+wall's yielding this step also moves the surface: rate_i(f) = rate_i + (delta_i(f) - depth_i)/dt.
+`compliance_forces` solves f_i = phi(delta_i(f), rate_i(f)) (the penalty law phi) by semi-smooth
+Newton: the Jacobian is I + diag(phi_delta + phi_rate / dt) D on contacts that stay in contact
+(delta > 0), the identity elsewhere (f_i = 0). For the linear law on a fixed contact set one
+iteration is exact; a few handle contacts that separate and the non-linear laws. Where the law
+jumps at delta = 0 (damping: f(0+) = b rate) the solution can be a wall resting exactly at the
+tool (delta = 0, f between 0 and f(0+)), which Newton cannot reach (it cycles): after max_iter
+iterations the solve falls back to projected Gauss-Seidel with that set-valued law, contact by
+contact (`_scalar_contact`).
+"""
+import math
+
+from numba import njit
+
+from .penalty_kernels import LAW_HUNT_CROSSLEY, distribute, penalty_magnitude, penalty_slopes
+
+#: Sweeps of the Gauss-Seidel fallback of the compliance solve (linear convergence; a few contacts).
+GAUSS_SEIDEL_SWEEPS = 500
+
+
+@njit(cache=True)
+def local_positions(frame_pos, frame_vel, tau, extrapolate, out):
+    """Local model vertex positions tau seconds after the frame (hold: frame positions)."""
+    if extrapolate:
+        for i in range(frame_pos.shape[0]):
+            for d in range(3):
+                out[i, d] = frame_pos[i, d] + frame_vel[i, d] * tau
+    else:
+        for i in range(frame_pos.shape[0]):
+            for d in range(3):
+                out[i, d] = frame_pos[i, d]
+
+
+@njit(cache=True)
+def add_displacement(pos, slot, u):
+    """pos[v] += u[slot[v]] for the local vertices that have a patch slot (the wall's yielding)."""
+    for v in range(pos.shape[0]):
+        s = slot[v]
+        if s >= 0:
+            pos[v, 0] += u[3 * s]
+            pos[v, 1] += u[3 * s + 1]
+            pos[v, 2] += u[3 * s + 2]
+
+
+@njit(cache=True)
+def _largest_node_norm(u):
+    """Largest |u_s| over the nodes of a (3p,) displacement."""
+    largest = 0.0
+    for s in range(u.shape[0] // 3):
+        norm = math.sqrt(u[3 * s] ** 2 + u[3 * s + 1] ** 2 + u[3 * s + 2] ** 2)
+        if norm > largest:
+            largest = norm
+    return largest
+
+
+@njit(cache=True)
+def patch_displacement(W, g, g_applied, u):
+    """u = W (g - g_applied) (3p); returns the largest node displacement |u_s| (m)."""
+    n = u.shape[0]
+    for r in range(n):
+        acc = 0.0
+        for c in range(n):
+            acc += W[r, c] * (g[c] - g_applied[c])
+        u[r] = acc
+    return _largest_node_norm(u)
+
+
+@njit(cache=True)
+def patch_forces(tissue_force, nodes, count, g):
+    """g (3p) = tissue_force at the patch nodes (the force the wall is loaded with)."""
+    for s in range(count):
+        for d in range(3):
+            g[3 * s + d] = tissue_force[nodes[s], d]
+
+
+@njit(cache=True)
+def _solve_dense(J, rhs, m):
+    """Solve J x = rhs in place (x in rhs) for the leading m x m block, partial pivoting."""
+    for col in range(m):
+        piv = col
+        best = abs(J[col, col])
+        for r in range(col + 1, m):
+            if abs(J[r, col]) > best:
+                best = abs(J[r, col])
+                piv = r
+        if piv != col:
+            for c in range(m):
+                tmp = J[col, c]
+                J[col, c] = J[piv, c]
+                J[piv, c] = tmp
+            tmp = rhs[col]
+            rhs[col] = rhs[piv]
+            rhs[piv] = tmp
+        diag = J[col, col]
+        for r in range(col + 1, m):
+            factor = J[r, col] / diag
+            if factor != 0.0:
+                for c in range(col, m):
+                    J[r, c] -= factor * J[col, c]
+                rhs[r] -= factor * rhs[col]
+    for r in range(m - 1, -1, -1):
+        acc = rhs[r]
+        for c in range(r + 1, m):
+            acc -= J[r, c] * rhs[c]
+        rhs[r] = acc / J[r, r]
+
+
+@njit(cache=True)
+def _solved_contact(ia, i, m, delta0, D, f, contact_depth, contact_rate, dt):
+    """(depth, rate) of contact ia (primitive i) against the wall yielding under the forces f."""
+    delta = delta0[ia]
+    for ib in range(m):
+        delta -= D[ia, ib] * f[ib]
+    return delta, contact_rate[i] + (delta - contact_depth[i]) / dt
+
+
+@njit(cache=True)
+def _scalar_contact(e, d, r_base, law, k, b, d0, dt):
+    """Force of one contact whose depth is delta = e - d f (the others held), rate r_base + delta/dt.
+
+    The law may jump at delta = 0 (linear and quadratic laws with damping: f(0+) = b rate): the
+    graph is then set-valued there and a wall that yields enough rests exactly at the tool
+    (delta = 0, f = e/d within [0, f(0+)]). Otherwise the root of the monotone
+    h(delta) = phi(delta, r_base + delta/dt) - (e - delta)/d, by safeguarded Newton."""
+    if e <= 0.0:
+        return 0.0
+    if d <= 0.0:
+        return penalty_magnitude(e, r_base + e / dt, law, k, b, d0)
+    tiny = 1e-300
+    if penalty_magnitude(tiny, r_base, law, k, b, d0) >= e / d:
+        return e / d
+    lo = 0.0
+    hi = e
+    for _ in range(200):
+        if penalty_magnitude(hi, r_base + hi / dt, law, k, b, d0) - (e - hi) / d >= 0.0:
+            break
+        lo = hi
+        hi *= 2.0
+    x = hi
+    for _ in range(100):
+        h = penalty_magnitude(x, r_base + x / dt, law, k, b, d0) - (e - x) / d
+        if h >= 0.0:
+            hi = x
+        else:
+            lo = x
+        s_delta, s_rate = penalty_slopes(x, r_base + x / dt, law, k, b, d0)
+        slope = s_delta + s_rate / dt + 1.0 / d
+        x_new = x - h / slope
+        if not (lo < x_new < hi):
+            x_new = 0.5 * (lo + hi)
+        if abs(x_new - x) <= 1e-15 * x or hi - lo <= 1e-15 * hi:
+            x = x_new
+            break
+        x = x_new
+    return (e - x) / d
+
+
+@njit(cache=True)
+def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0, dt, tol, max_sweeps, f):
+    """Projected Gauss-Seidel over the contacts, each solved exactly with the others held (converges
+    for the positive semi-definite D). Returns the sweeps used, -1 when max_sweeps did not reach tol."""
+    for sweep in range(max_sweeps):
+        change = 0.0
+        fmax = 0.0
+        for ia in range(m):
+            i = act[ia]
+            e = delta0[ia]
+            for ib in range(m):
+                if ib != ia:
+                    e -= D[ia, ib] * f[ib]
+            new = _scalar_contact(e, D[ia, ia], contact_rate[i] - contact_depth[i] / dt, law, k, b, d0, dt)
+            if abs(new - f[ia]) > change:
+                change = abs(new - f[ia])
+            f[ia] = new
+            if abs(new) > fmax:
+                fmax = abs(new)
+        if change <= tol * (1.0 + fmax):
+            return sweep + 1
+    return -1
+
+
+@njit(cache=True)
+def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g_prev,
+                      law, k, b, d0, dt, max_iter, tol, fmag, g_out, act, Wa, D, J, rhs, delta0, f):
+    """Contact forces against the yielding wall (see the module docstring).
+
+    Inputs: the narrow phase's contact data (contact_face, weights, normals, depth, rate; depth and
+    rate against the wall predicted with g_prev), tri (local faces), slot (local vertex -> patch
+    slot or -1), W (3p,3p), g_prev (3p). Outputs: fmag (per primitive: force magnitude along n),
+    contact_depth / contact_rate updated to the solved wall, contact_face set to -1 for contacts
+    the yielding wall has left, g_out (3p) the patch force of the solution. Work arrays: act
+    (n_prim,) int64, Wa (n_prim, >= 3p), D, J (n_prim, n_prim), rhs, delta0, f (n_prim,).
+    Returns the Newton iterations used (-1 when max_iter did not reach tol: the last iterate is
+    kept).
+    """
+    n3 = W.shape[0]
+    m = 0
+    for i in range(contact_face.shape[0]):
+        fmag[i] = 0.0
+        if contact_face[i] >= 0:
+            act[m] = i
+            m += 1
+    for r in range(n3):
+        g_out[r] = 0.0
+    if m == 0:
+        return 0
+    # W a_i for every contact, then D = A^T W A and delta0 = depth - a^T W g_prev
+    for ia in range(m):
+        i = act[ia]
+        fc = contact_face[i]
+        for r in range(n3):
+            Wa[ia, r] = 0.0
+        for j in range(3):
+            s = slot[tri[fc, j]]
+            if s < 0:
+                continue
+            w = contact_w[i, j]
+            n0 = w * contact_n[i, 0]
+            n1 = w * contact_n[i, 1]
+            n2 = w * contact_n[i, 2]
+            for r in range(n3):
+                Wa[ia, r] += W[r, 3 * s] * n0 + W[r, 3 * s + 1] * n1 + W[r, 3 * s + 2] * n2
+    for ia in range(m):
+        i = act[ia]
+        fc = contact_face[i]
+        for ib in range(m):
+            acc = 0.0
+            for j in range(3):
+                s = slot[tri[fc, j]]
+                if s < 0:
+                    continue
+                w = contact_w[i, j]
+                acc += w * (contact_n[i, 0] * Wa[ib, 3 * s] + contact_n[i, 1] * Wa[ib, 3 * s + 1]
+                            + contact_n[i, 2] * Wa[ib, 3 * s + 2])
+            D[ia, ib] = acc
+        e = 0.0
+        for r in range(n3):
+            e += Wa[ia, r] * g_prev[r]
+        delta0[ia] = contact_depth[i] - e
+        f[ia] = 0.0
+    iterations = -1
+    for it in range(max_iter):
+        fmax = 0.0
+        for ia in range(m):
+            delta, rate = _solved_contact(ia, act[ia], m, delta0, D, f, contact_depth, contact_rate, dt)
+            phi = penalty_magnitude(delta, rate, law, k, b, d0)
+            slope = 0.0
+            if delta > 0.0 and (law != LAW_HUNT_CROSSLEY or phi > 0.0):  # Hunt-Crossley clamps at 0
+                s_delta, s_rate = penalty_slopes(delta, rate, law, k, b, d0)
+                slope = s_delta + s_rate / dt
+            rhs[ia] = phi - f[ia]
+            for ib in range(m):
+                J[ia, ib] = slope * D[ia, ib]
+            J[ia, ia] += 1.0
+            if abs(f[ia]) > fmax:
+                fmax = abs(f[ia])
+        _solve_dense(J, rhs, m)
+        step = 0.0
+        for ia in range(m):
+            f[ia] += rhs[ia]
+            if abs(rhs[ia]) > step:
+                step = abs(rhs[ia])
+        if step <= tol * (1.0 + fmax):
+            iterations = it + 1
+            break
+    if iterations < 0:
+        # Newton cycles where the law jumps at delta = 0 (the wall rests exactly at the tool): solve
+        # contact by contact with the set-valued law instead
+        for ia in range(m):
+            f[ia] = 0.0
+        sweeps = _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0, dt, tol,
+                               GAUSS_SEIDEL_SWEEPS, f)
+        iterations = -1 if sweeps < 0 else max_iter + sweeps
+    # final state: depths and rates of the solved wall, forces, patch load
+    for ia in range(m):
+        i = act[ia]
+        delta, rate = _solved_contact(ia, i, m, delta0, D, f, contact_depth, contact_rate, dt)
+        fc = contact_face[i]
+        if delta <= 0.0 and f[ia] <= 0.0:
+            f[ia] = 0.0
+            contact_face[i] = -1
+            contact_depth[i] = 0.0
+            contact_rate[i] = 0.0
+            continue
+        fmag[i] = f[ia]
+        contact_depth[i] = max(delta, 0.0)       # 0 (to round-off) where the wall rests at the tool
+        contact_rate[i] = rate
+        for j in range(3):
+            s = slot[tri[fc, j]]
+            if s < 0:
+                continue
+            w = contact_w[i, j] * f[ia]
+            g_out[3 * s] -= w * contact_n[i, 0]
+            g_out[3 * s + 1] -= w * contact_n[i, 1]
+            g_out[3 * s + 2] -= w * contact_n[i, 2]
+    return iterations
+
+
+@njit(cache=True)
+def _before(c1, d1, id1, c2, d2, id2):
+    """Order of patch candidates: contact-face vertices first, then nearer, then lower id."""
+    if c1 != c2:
+        return c1 < c2
+    if d1 != d2:
+        return d1 < d2
+    return id1 < id2
+
+
+@njit(cache=True)
+def name_patch(pos, vertices, tri, contact_face, contact_point, tool, near_dist, reach, max_nodes,
+               key_class, key_dist, key_id, out):
+    """The patch: at most max_nodes surface nodes in or near the contact, ascending ids, -1 padded.
+
+    Candidates are the local model's vertices (pos (nv,3), global ids `vertices`). With contacts,
+    the vertices of the contact faces come first, then the others by distance to the nearest
+    contact point; without contacts, the vertices nearest to the tool node closest to the surface
+    if that node is within `reach` of it (near_dist from the narrow phase), else none.
+    key_class/key_dist/key_id (max_nodes,) are work arrays. Returns the node count.
+    """
+    n_prim = contact_face.shape[0]
+    n_contacts = 0
+    for i in range(n_prim):
+        if contact_face[i] >= 0:
+            n_contacts += 1
+    focus = -1
+    if n_contacts == 0:
+        best = math.inf
+        for i in range(near_dist.shape[0]):
+            if near_dist[i] < best:
+                best = near_dist[i]
+                focus = i
+        if focus < 0 or best > reach:
+            for s in range(max_nodes):
+                out[s] = -1
+            return 0
+    count = 0
+    for v in range(pos.shape[0]):
+        cls = 1
+        dist2 = math.inf
+        if n_contacts:
+            for i in range(n_prim):
+                fc = contact_face[i]
+                if fc < 0:
+                    continue
+                if tri[fc, 0] == v or tri[fc, 1] == v or tri[fc, 2] == v:
+                    cls = 0
+                d2 = ((pos[v, 0] - contact_point[i, 0]) ** 2 + (pos[v, 1] - contact_point[i, 1]) ** 2
+                      + (pos[v, 2] - contact_point[i, 2]) ** 2)
+                if d2 < dist2:
+                    dist2 = d2
+        else:
+            dist2 = ((pos[v, 0] - tool[focus, 0]) ** 2 + (pos[v, 1] - tool[focus, 1]) ** 2
+                     + (pos[v, 2] - tool[focus, 2]) ** 2)
+        gid = vertices[v]
+        if count == max_nodes and not _before(cls, dist2, gid, key_class[count - 1], key_dist[count - 1],
+                                              key_id[count - 1]):
+            continue
+        # insert into the sorted buffer (dropping the last one when full)
+        pos_ins = count if count < max_nodes else max_nodes - 1
+        while pos_ins > 0 and _before(cls, dist2, gid, key_class[pos_ins - 1], key_dist[pos_ins - 1],
+                                      key_id[pos_ins - 1]):
+            if pos_ins < max_nodes:
+                key_class[pos_ins] = key_class[pos_ins - 1]
+                key_dist[pos_ins] = key_dist[pos_ins - 1]
+                key_id[pos_ins] = key_id[pos_ins - 1]
+            pos_ins -= 1
+        key_class[pos_ins] = cls
+        key_dist[pos_ins] = dist2
+        key_id[pos_ins] = gid
+        if count < max_nodes:
+            count += 1
+    # ascending ids (insertion sort of at most max_nodes entries), -1 padded
+    for s in range(count):
+        out[s] = key_id[s]
+    for s in range(1, count):
+        x = out[s]
+        j = s - 1
+        while j >= 0 and out[j] > x:
+            out[j + 1] = out[j]
+            j -= 1
+        out[j + 1] = x
+    for s in range(count, max_nodes):
+        out[s] = -1
+    return count
+
+
+@njit(cache=True)
+def compliance_response(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
+                        local_to_global, n_tool, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt, max_iter,
+                        tol, fmag, work_i, Wa, D, J, work_f, node_force, tissue_force, force_sum, out):
+    """The compliance model's response in one call (the 1 kHz path): `compliance_forces`, then
+    `penalty_kernels.distribute`, then the patch's new load g and displacement u = W (g - g_applied)
+    (updated by the changed columns of g only: u is W (g - g_applied) to round-off).
+    work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
+    (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
+    iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
+                                   law, k, b, d0, dt, max_iter, tol, fmag, g_new, work_i, Wa, D, J, work_f[0],
+                                   work_f[1], work_f[2])
+    max_depth, count, energy = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri,
+                                          local_to_global, n_tool, law, k, d0, node_force, tissue_force, force_sum)
+    # u = W (g - g_applied), updated by the columns whose load changed (at most 9 per contact:
+    # the contact faces' vertices; none while nothing touches the patch)
+    n3 = g.shape[0]
+    for col in range(n3):
+        dg = g_new[col] - g[col]
+        if dg != 0.0:
+            for r in range(n3):
+                u[r] += W[r, col] * dg
+            g[col] = g_new[col]
+    out[0] = max_depth
+    out[1] = count
+    out[2] = energy
+    out[3] = iterations
+    out[4] = _largest_node_norm(u)
