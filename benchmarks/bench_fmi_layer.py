@@ -34,8 +34,8 @@ def catheter_path(k: int) -> np.ndarray:
     """31 points up the aorta; the tip bends into the sac wall and presses in and out."""
     s = np.linspace(0.0, 1.0, 31)
     t = k * DT
-    z = 0.02 + s * (0.045 + 0.004 * np.sin(2 * np.pi * 0.5 * t))
-    x = 0.021 * np.clip((s - 0.6) / 0.4, 0, None) ** 2 * (1.0 + 0.05 * np.sin(2 * np.pi * 0.5 * t))
+    z = 0.02 + s * 0.045
+    x = (0.0236 + 0.0008 * np.sin(2 * np.pi * 0.5 * t)) * np.clip((s - 0.6) / 0.4, 0, None) ** 2
     return np.stack([x, np.zeros_like(s), z], axis=1)
 
 

@@ -95,5 +95,5 @@ def test_nan_tool_position_is_refused(contact_fmu):
         fmu.initialize()
         tool = np.zeros(fmu.size("tool_positions"))
         tool[4] = np.nan
-        fmu.expect_error(lambda: fmu.set("tool_positions", tool), "tool_positions", "value 4 is nan")
+        fmu.expect_error(lambda: fmu.set("tool_positions", tool), "tool_positions", "value 4 is NaN")
         fmu.slave.doStep(0.0, STEP)
