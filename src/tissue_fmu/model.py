@@ -15,23 +15,23 @@ from numbers import Integral, Real
 import numpy as np
 
 from .forcefield import TensorMassForceField
-from .precompute import tensors_to_csr
 from .integrators import (
     BackwardEuler,
-    FactorizedPreconditioner,
     JacobiPreconditioner,
     StabilityError,
     StepStatistics,
     SymplecticEuler,
     TissueError,
 )
+from .factorization import TangentFactorization
+from .materials import LAWS
 from .mesh import TetMesh, aaa_mesh, load_mesh
+from .precompute import signed_volumes
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["TissueError", "StabilityError", "TissueParameters", "TissueModel"]
 
-LAWS = ("linear", "etmm", "hyperelastic")
 INTEGRATORS = ("explicit", "implicit")
 PRECONDITIONERS = ("factorized", "jacobi")
 # A step that moves a node farther than this many mesh diameters has diverged.
@@ -328,12 +328,7 @@ class TissueModel:
                 critical_time_step=self._critical_step(),
             )
         if p.preconditioner == "factorized":
-            ff = self.force_field
-            damping = ff.damping_tensors() if p.viscosity > 0.0 else None
-            preconditioner = FactorizedPreconditioner(
-                ff.stiffness_matrix(), self.masses, self.fixed,
-                damping=None if damping is None else tensors_to_csr(damping),
-            )
+            preconditioner = TangentFactorization(self.force_field, self.masses, self.fixed)
         else:
             preconditioner = JacobiPreconditioner(self.force_field, self.masses, self.fixed)
         return BackwardEuler(
@@ -407,17 +402,9 @@ class TissueModel:
         strain = self._max_strain = float(self.force_field.max_strain(self.displacement))
         if strain <= STRAIN_WARNING:
             return
-        points = self.mesh.points + self.displacement
         tets = self.mesh.tets[self.active_elements]
-        a = points[tets[:, 1]] - points[tets[:, 0]]
-        b = points[tets[:, 2]] - points[tets[:, 0]]
-        c = points[tets[:, 3]] - points[tets[:, 0]]
-        signed = np.einsum("ij,ij->i", a, np.cross(b, c))
-        rest = self.mesh.points
-        a0 = rest[tets[:, 1]] - rest[tets[:, 0]]
-        b0 = rest[tets[:, 2]] - rest[tets[:, 0]]
-        c0 = rest[tets[:, 3]] - rest[tets[:, 0]]
-        inverted = int(np.count_nonzero(signed * np.einsum("ij,ij->i", a0, np.cross(b0, c0)) <= 0.0))
+        deformed = signed_volumes(self.mesh.points + self.displacement, tets)
+        inverted = int(np.count_nonzero(deformed * signed_volumes(self.mesh.points, tets) <= 0.0))
         if inverted or strain > STRAIN_DIVERGENCE:
             what = f"{inverted} tetrahedra inverted" if inverted else f"Green strain {strain:.3g} > {STRAIN_DIVERGENCE:g}"
             raise TissueError(
@@ -443,6 +430,7 @@ class TissueModel:
         self.time = 0.0
         if isinstance(self.integrator, BackwardEuler):
             self.integrator.dv.fill(0.0)
+            self.integrator._dv_prev.fill(0.0)
 
     def get_state(self) -> dict:
         """A copy of everything a step depends on (for FMU get/set state and rollback)."""
@@ -454,6 +442,7 @@ class TissueModel:
         }
         if isinstance(self.integrator, BackwardEuler):
             state["warm_start"] = self.integrator.dv.copy()
+            state["warm_start_previous"] = self.integrator._dv_prev.copy()
         return state
 
     def set_state(self, state: dict) -> None:
@@ -465,6 +454,8 @@ class TissueModel:
         self._max_strain = float(self.force_field.max_strain(self.displacement))
         if isinstance(self.integrator, BackwardEuler) and "warm_start" in state:
             np.copyto(self.integrator.dv, state["warm_start"])
+            if "warm_start_previous" in state:
+                np.copyto(self.integrator._dv_prev, state["warm_start_previous"])
 
     # ----------------------------------------------------------------------------------
     # Outputs
