@@ -142,6 +142,17 @@ class FactorizedPreconditioner:
         self._h = None
         self._lu = None
 
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_lu"] = None  # SuperLU cannot be pickled: refactorised (bit for bit) on load
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if self._h is not None:
+            h, self._h = self._h, None
+            self.update(h)
+
     def update(self, h: float) -> None:
         if h == self._h:
             return
