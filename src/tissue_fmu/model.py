@@ -268,6 +268,8 @@ class TissueModel:
         self._critical_time_step: float | None = None
         self._max_strain = 0.0          # of the current displacement, computed once per step
         self._strain_warned = False     # the extreme-strain warning is given once
+        self.last_dt: float | None = None  # size of the last step (default of compliance())
+        self._compliance_factors: dict = {}  # dt -> TangentFactorization, when the integrator's cannot serve
         self.integrator = self._make_integrator()
         logger.info(
             "tissue model: %d nodes (%d fixed), %d/%d active tets, %d surface nodes, law=%s, integrator=%s",
@@ -391,6 +393,7 @@ class TissueModel:
         self._check_deformation(t, dt)
         self._statistics = stats
         self.time = float(t) + float(dt)
+        self.last_dt = float(dt)
 
     def _check_deformation(self, t: float, dt: float) -> None:
         """Extreme strain gets a warning; inverted elements or an absurd strain end the run.
@@ -468,6 +471,100 @@ class TissueModel:
     def surface_positions(self) -> np.ndarray:
         """(n_surface, 3) current positions of the surface nodes."""
         return self.mesh.points[self.surface_nodes] + self.displacement[self.surface_nodes]
+
+    def compliance(self, surface_node_ids, dt: float | None = None) -> np.ndarray:
+        """(3p, 3p) compliance W of the given surface nodes over the next step of size ``dt``.
+
+        ``surface_node_ids``: p distinct local surface-node ids (rows of :meth:`surface_positions`).
+        ``W[3 a + i, 3 b + j]`` is the displacement (m) of node a, component i, at the end of the
+        next step per newton of extra contact force on node b, component j, held over the step:
+        for the backward-Euler step ``(M + h C + h^2 K_t) dv = h (f + f_ext - h K_t v)``,
+        ``u += h (v + dv)``, it is ``h^2 (M + h C + h^2 K_t)^-1`` restricted to those dofs, with the
+        tangent ``K_t`` the step uses at the current state (ETMM: consistent, so W is slightly
+        non-symmetric once elements are above the threshold; linear: symmetric positive definite).
+        Clamped or frozen dofs give zero rows and columns.  ``dt`` defaults to the last step's
+        size.  Each column is a pair of triangular solves with the integrator's factorisation
+        (made exact by iterative refinement when it lags the tangent); with the explicit or the
+        Jacobi integrator a factorisation of the same implicit matrix is built once per dt.
+        Does not change the model's results.
+        """
+        if dt is None:
+            dt = self.last_dt
+            if dt is None:
+                raise TissueError("compliance: no step has been taken yet, so give dt (s), e.g. compliance(ids, 1/30)")
+        if not _is_number(dt) or not math.isfinite(dt) or dt <= 0.0:
+            raise TissueError(f"compliance: dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
+        try:
+            ids = np.asarray(surface_node_ids)
+        except (TypeError, ValueError):
+            ids = np.asarray([], dtype=object)
+        if ids.ndim != 1 or ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
+            raise TissueError(f"compliance: surface_node_ids must be a non-empty 1-D sequence of integers "
+                              f"(local surface-node ids in [0, {self.n_surface})), got {surface_node_ids!r}")
+        if ids.min() < 0 or ids.max() >= self.n_surface:
+            raise TissueError(f"compliance: surface node ids must lie in [0, {self.n_surface}) "
+                              f"(got {ids.min()}..{ids.max()}): they index surface_positions()")
+        if np.unique(ids).size != ids.size:
+            raise TissueError(f"compliance: surface node ids repeat ({ids.tolist()}): give each node once")
+        h = float(dt)
+        nodes = self.surface_nodes[ids.astype(np.int64)]
+        dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        integrator = self.integrator
+        ff = self.force_field
+        # The tangent at the current state, as the next step will take it (same inputs, same result).
+        scratch = np.zeros_like(self.displacement)
+        ff.add_forces(self.displacement, self.velocity, scratch)
+        consistent = getattr(ff, "nonlinear_fraction", 0.0) > 0.0
+        if isinstance(integrator, BackwardEuler):
+            consistent = consistent and integrator.consistent_tangent
+        pc = None
+        if (isinstance(integrator, BackwardEuler) and isinstance(integrator.preconditioner, TangentFactorization)
+                and (integrator.preconditioner._h is None or integrator.preconditioner._h == h)):
+            pc = integrator.preconditioner
+        if pc is None:
+            pc = self._compliance_factors.get(h)
+            if pc is None:
+                pc = self._compliance_factors[h] = TangentFactorization(ff, self.masses, self.fixed)
+        pc.update(h)
+        free_index = pc._free_index
+        free_cols = np.flatnonzero(free_index[dofs] >= 0)
+        rhs = np.zeros((pc.free_dofs.size, free_cols.size))
+        rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
+        x = pc.solve_matrix(rhs)
+        if pc.mode == "tangent":
+            x = self._refine_compliance(pc, rhs, x, h, consistent)
+        w = np.zeros((dofs.size, dofs.size))
+        w[np.ix_(free_cols, free_cols)] = (h * h) * x[free_index[dofs[free_cols]], :]
+        return w
+
+    def _refine_compliance(self, pc, rhs, x, h, consistent, tolerance=1e-11, max_sweeps=50):
+        """Iterative refinement X += P^-1 (E - A X) (P the possibly lagging tangent factor, A the
+        current step matrix) until the correction is below tolerance * max |X|."""
+        n = self.mesh.n_nodes
+        free = pc.free_dofs
+        mass = np.repeat(np.where(self.masses > 0.0, self.masses, 1.0), 3)[free]
+        ff = self.force_field
+        viscous = self.params.viscosity > 0.0
+        full = np.zeros((n, 3))
+        out = np.zeros((n, 3))
+
+        def apply(columns):
+            result = np.empty_like(columns)
+            for c in range(columns.shape[1]):
+                full.fill(0.0)
+                full.reshape(-1)[free] = columns[:, c]
+                ff.system_matvec(full, h * h, h if viscous else 0.0, out, consistent)
+                result[:, c] = out.reshape(-1)[free] + mass * columns[:, c]
+            return result
+
+        for _ in range(max_sweeps):
+            correction = pc.solve_matrix(rhs - apply(x))
+            x = x + correction
+            if np.abs(correction).max() <= tolerance * np.abs(x).max():
+                return x
+        logger.warning("compliance: iterative refinement stopped after %d sweeps (last correction %.3g of the "
+                       "solution)", max_sweeps, float(np.abs(correction).max() / np.abs(x).max()))
+        return x
 
     def surface_velocities(self) -> np.ndarray:
         """(n_surface, 3) current velocities of the surface nodes."""
