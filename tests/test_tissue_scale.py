@@ -179,6 +179,30 @@ def test_default_tolerance_stays_within_tolerance_of_the_reference():
     assert np.abs(model.displacement - u_ref).max() <= 1e-5 * np.abs(u_ref).max()
 
 
+def test_solver_backends_agree():
+    """The rest factor by CHOLMOD (cholespy, when installed) and by SuperLU: the same preconditioner
+    to round-off, and the same Woodbury-corrected step matrix inverse."""
+    from tissue_fmu.factorization import TangentFactorization, cholmod_available
+
+    if not cholmod_available():
+        pytest.skip("cholespy not installed: SuperLU is the only backend")
+    model = TissueModel(aaa_mesh(**SIZES[1]), TissueParameters(law="etmm", viscosity=50.0))
+    model.set_contact_force(patch_force(model, 3.0))
+    for k in range(3):
+        model.step(k * FRAME, FRAME)
+    assert model.nonlinear_fraction > 0
+    r = np.random.default_rng(2).standard_normal(model.displacement.shape)
+    results = []
+    for backend in ("superlu", "cholmod"):
+        pc = TangentFactorization(model.force_field, model.masses, model.fixed, backend=backend)
+        pc.update(FRAME)
+        assert pc.mode == "lowrank"
+        out = np.zeros_like(r)
+        pc(r, out)
+        results.append(out)
+    assert np.abs(results[0] - results[1]).max() <= 1e-9 * np.abs(results[0]).max()
+
+
 # --------------------------------------------------------------------------------------
 # kernels against references
 # --------------------------------------------------------------------------------------

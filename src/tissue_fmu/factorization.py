@@ -50,6 +50,33 @@ REFACTOR_ITERATIONS = 6
 REFACTOR_BUDGET = 24
 
 
+class _CholeskyFactor:
+    """CHOLMOD (supernodal, through the self-contained ``cholespy`` wheel) of an SPD matrix given
+    as CSR arrays; ``solve`` takes (n,) or (n, k) right-hand sides like SuperLU's."""
+
+    def __init__(self, indptr, indices, data):
+        import cholespy
+
+        n = indptr.size - 1
+        self._solver = cholespy.CholeskySolverD(n, np.ascontiguousarray(indptr, dtype=np.int32),
+                                                np.ascontiguousarray(indices, dtype=np.int32),
+                                                np.ascontiguousarray(data, dtype=np.float64), cholespy.MatrixType.CSR)
+
+    def solve(self, rhs, trans="N"):
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        x = np.empty_like(rhs)
+        self._solver.solve(rhs, x)
+        return x
+
+
+def cholmod_available() -> bool:
+    try:
+        import cholespy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def sparse_lu(matrix_csc):
     """SuperLU of a structurally symmetric, diagonally dominant-ish matrix: symmetric fill-reducing
     ordering and no pivoting (measured on the default AAA: 1.5x fewer nonzeros and 2x faster
@@ -68,9 +95,16 @@ class TangentFactorization:
 
     def __init__(self, force_field, masses: np.ndarray, fixed: np.ndarray, *,
                  max_lowrank_dofs: int = MAX_LOWRANK_DOFS, refactor_iterations: int = REFACTOR_ITERATIONS,
-                 refactor_budget: int = REFACTOR_BUDGET):
+                 refactor_budget: int = REFACTOR_BUDGET, backend: str = "auto"):
         ff = self.force_field = force_field
         n = ff.n_nodes
+        if backend not in ("auto", "superlu", "cholmod"):
+            raise ValueError(f"backend must be 'auto', 'superlu' or 'cholmod' (got {backend!r})")
+        if backend == "auto":
+            backend = "cholmod" if cholmod_available() else "superlu"
+        #: the rest (SPD) matrix's factorisation: CHOLMOD through cholespy when installed (measured
+        #: 1.1-1.8x faster solves than SuperLU here), else SuperLU; the tangent is always SuperLU.
+        self.backend = backend
         self.max_lowrank_dofs = int(max_lowrank_dofs)
         self.refactor_iterations = int(refactor_iterations)
         self.refactor_budget = int(refactor_budget)
@@ -142,6 +176,7 @@ class TangentFactorization:
         self._lu_tangent = None
         # Woodbury cache: rows of Z^T (one per free dof of a cached node), node -> first row.
         self._z_rows = np.zeros((0, nf))
+        self._z_count = 0
         self._z_node_row: dict[int, int] = {}
         self._dofs = np.zeros(0, dtype=np.int64)      # free dof ids of the current set
         self._rows = np.zeros(0, dtype=np.int64)      # their rows in _z_rows
@@ -161,7 +196,7 @@ class TangentFactorization:
     def __setstate__(self, state):
         self.__dict__.update(state)
         if self._rest_data is not None:
-            self._lu_rest = sparse_lu(self._free_matrix(self._rest_data[self._keep]))
+            self._lu_rest = self._factor_rest(self._rest_data[self._keep])
         if self._tangent_data is not None:
             self._lu_tangent = sparse_lu(self._free_matrix(self._tangent_data))
 
@@ -171,17 +206,23 @@ class TangentFactorization:
         nf = self._free_dofs.size
         return sp.csc_matrix((free_data, self._f_indices, self._f_indptr), shape=(nf, nf))
 
+    def _factor_rest(self, free_data):
+        if self.backend == "cholmod":
+            return _CholeskyFactor(self._f_indptr, self._f_indices, free_data)
+        return sparse_lu(self._free_matrix(free_data))
+
     def _set_step(self, h: float) -> None:
         data = (h * h) * self._k_data
         if self._c_data is not None:
             data += h * self._c_data
         data[self._diag_pos] += self._mass_dofs
         self._rest_data = data
-        self._lu_rest = sparse_lu(self._free_matrix(data[self._keep]))
+        self._lu_rest = self._factor_rest(data[self._keep])
         self.factorizations += 1
         self._h = h
         # Everything derived from A_0 is stale.
         self._z_rows = np.zeros((0, self._free_dofs.size))
+        self._z_count = 0
         self._z_node_row = {}
         self._tangent_data = None
         self._lu_tangent = None
@@ -225,37 +266,41 @@ class TangentFactorization:
         self._extra_iterations = 0
         logger.debug("factorised the assembled tangent: %d super-threshold elements", ids.shape[0])
 
-    def _update_lowrank(self, h: float, nodes: np.ndarray) -> None:
+    def _ensure_columns(self, nodes) -> tuple[np.ndarray, np.ndarray]:
+        """Cached rows of Z^T = (A_0^-1 U)^T for the free dofs of ``nodes``: (free dof ids, rows).
+
+        Each node's (up to) three columns are solved on their own, so a node's columns are the same
+        bits whichever call first needed them (a step's Woodbury set or a compliance request)."""
         nf = self._free_dofs.size
-        new = [int(v) for v in nodes if int(v) not in self._z_node_row
-               and (self._free_index[3 * v: 3 * v + 3] >= 0).any()]
-        if new:
-            new_dofs = self._free_index[(3 * np.asarray(new)[:, None] + np.arange(3)).ravel()]
-            new_dofs = new_dofs[new_dofs >= 0]
-            rhs = np.zeros((nf, new_dofs.size))
-            rhs[new_dofs, np.arange(new_dofs.size)] = 1.0
-            columns = self._lu_rest.solve(rhs, trans="T")
-            start = self._z_rows.shape[0]
-            self._z_rows = np.concatenate([self._z_rows, np.ascontiguousarray(columns.T)])
-            row = start
-            for v in new:
-                self._z_node_row[v] = row
-                row += int((self._free_index[3 * v: 3 * v + 3] >= 0).sum())
-        # Current set: free dofs and their cached rows, node-major.
         dofs, rows = [], []
         for v in nodes:
             v = int(v)
             d = self._free_index[3 * v: 3 * v + 3]
-            if not (d >= 0).any():
+            free = d[d >= 0]
+            if free.size == 0:
                 continue
-            r = self._z_node_row[v]
-            for c in range(3):
-                if d[c] >= 0:
-                    dofs.append(d[c])
-                    rows.append(r)
-                    r += 1
-        self._dofs = np.asarray(dofs, dtype=np.int64)
-        self._rows = np.asarray(rows, dtype=np.int64)
+            r = self._z_node_row.get(v)
+            if r is None:
+                rhs = np.zeros((nf, free.size))
+                rhs[free, np.arange(free.size)] = 1.0
+                columns = self._lu_rest.solve(rhs, trans="T")
+                r = self._z_count
+                if r + free.size > self._z_rows.shape[0]:
+                    grown = np.zeros((max(2 * self._z_rows.shape[0], r + free.size, 24), nf))
+                    grown[:r] = self._z_rows[:r]
+                    self._z_rows = grown
+                self._z_rows[r: r + free.size] = columns.T
+                self._z_count += free.size
+                self._z_node_row[v] = r
+            dofs.extend(free.tolist())
+            rows.extend(range(r, r + free.size))
+        return np.asarray(dofs, dtype=np.int64), np.asarray(rows, dtype=np.int64)
+
+    def _update_lowrank(self, h: float, nodes: np.ndarray) -> None:
+        # Current set: free dofs and their cached rows, node-major.
+        dofs, rows = self._ensure_columns(nodes)
+        self._dofs = dofs
+        self._rows = rows
         k = self._dofs.size
         # C (k x k): h^2 times the consistent correction on the set's free dofs.
         ids, blocks = self.force_field.tangent_blocks()
@@ -269,7 +314,7 @@ class TangentFactorization:
         ok = (r_idx >= 0) & (c_idx >= 0)
         small_c = np.zeros((k, k))
         np.add.at(small_c, (r_idx[ok], c_idx[ok]), (h * h) * values[ok])
-        g = self._z_rows[self._rows][:, self._dofs].T  # G[a, b] = Z[D[a], b] = z_row(D[b])[D[a]]
+        g = self._z_rows[np.ix_(self._rows, self._dofs)].T  # G[a, b] = Z[D[a], b] = z_row(D[b])[D[a]]
         self._small_c = small_c
         self._small_lu = sla.lu_factor(np.eye(k) + small_c @ g, check_finite=False)
 
@@ -284,6 +329,21 @@ class TangentFactorization:
                 s = sla.lu_solve(self._small_lu, t, check_finite=False)
                 kernels.rows_transpose_subtract(self._z_rows, self._rows, s, x)
         out.reshape(-1)[self._free_dofs] = x
+
+    def inverse_block(self, nodes) -> np.ndarray | None:
+        """(A^-1)[d, d] for the free dofs d of ``nodes`` (node-major), from the cached columns of
+        A_0^-1 and the Woodbury correction: O(k p) once the nodes' columns are cached; None when
+        the preconditioner is an assembled tangent factor (not exact)."""
+        if self.mode == "tangent":
+            return None
+        dofs, rows = self._ensure_columns(nodes)
+        y = self._z_rows[np.ix_(rows, dofs)]  # (A_0^-1)[d, d] (symmetric)
+        if self.mode == "lowrank":
+            y_set = self._z_rows[np.ix_(rows, self._dofs)].T           # (A_0^-1)[D, d]
+            z_req = self._z_rows[np.ix_(self._rows, dofs)].T           # (A_0^-1)[d, D]
+            s = sla.lu_solve(self._small_lu, self._small_c @ y_set, check_finite=False)
+            y = y - z_req @ s
+        return y
 
     def solve_matrix(self, rhs_free: np.ndarray) -> np.ndarray:
         """Apply the preconditioner to the columns of an (n_free, p) array (free numbering)."""

@@ -274,8 +274,10 @@ class BackwardEuler:
         v += dv;   u += h v
 
     For the linear law this is exactly backward Euler.  The system is solved matrix-free,
-    warm started from the previous ``dv``, with :class:`JacobiPreconditioner` (default) or
-    :class:`FactorizedPreconditioner` (needed for thin walls at 30 Hz, where Jacobi-CG takes
+    warm started from the previous ``dv`` extrapolated linearly from the one before, with
+    :class:`JacobiPreconditioner` (default), :class:`FactorizedPreconditioner` (the rest matrix) or
+    :class:`~tissue_fmu.factorization.TangentFactorization` (the model's choice: the step matrix
+    kept exact; needed for thin walls at 30 Hz, where Jacobi-CG takes
     thousands of iterations).
 
     Tangent: ``K_t`` is the force field's symmetric ``tangent_matvec`` (linear: K; ETMM: the
