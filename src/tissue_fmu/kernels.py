@@ -527,7 +527,10 @@ def _extreme_strain_rate(g, h, dh, sign, grad, d, cof):
 def etmm_consistent_tangent(tets, grads, volumes, lam, mu, candidates, u, du, threshold,
                             beta_over_alpha, out):
     """out += d/d(eps) [phi(u + eps du) K_T (u + eps du)] at eps = 0 summed over candidates
-    (the exact derivative of the correction, including the change of phi; not symmetric)."""
+    (the exact derivative of the correction, including the change of phi; not symmetric).
+
+    The original all-candidate form (strain, phi and its gradient recomputed per product), kept as
+    the reference of etmm_tangent_data + etmm_nonlinear_tangent_matvec, which the step uses."""
     h = np.empty((3, 3))
     dh = np.empty((3, 3))
     g = np.empty((3, 3))

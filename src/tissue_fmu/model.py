@@ -436,7 +436,13 @@ class TissueModel:
             self.integrator._dv_prev.fill(0.0)
 
     def get_state(self) -> dict:
-        """A copy of everything a step depends on (for FMU get/set state and rollback)."""
+        """A copy of the physical state a step depends on (for FMU get/set state and rollback).
+
+        Restoring it reproduces the run to solver tolerance; the implicit preconditioner's own
+        state (which tangent it last factorised, its Woodbury cache) is not included, so the Krylov
+        iterates may differ in the last digits.  For a bit-identical continuation copy the whole
+        model: ``copy.deepcopy(model)`` or ``pickle.loads(pickle.dumps(model))``.
+        """
         state = {
             "time": self.time,
             "displacement": self.displacement.copy(),
