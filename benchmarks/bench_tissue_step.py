@@ -23,13 +23,15 @@ from __future__ import annotations
 
 import argparse
 import copy
+import os
 import statistics
+import tempfile
 import time
 from collections import defaultdict
 
 import numpy as np
 
-from tissue_fmu import TissueModel, TissueParameters, aaa_mesh, kernels
+from tissue_fmu import TissueModel, TissueParameters, aaa_mesh, kernels, load_mesh, save_mesh
 from tissue_fmu.factorization import TangentFactorization, cholmod_available
 from tissue_fmu.integrators import BackwardEuler, FactorizedPreconditioner
 from tissue_fmu.precompute import tensors_to_csr
@@ -187,6 +189,10 @@ def main() -> None:
     # 1. the issue's cases, before and after
     default = aaa_mesh()
     big = aaa_mesh(n_circumferential=64, n_axial=80, n_radial=2)
+    with tempfile.TemporaryDirectory() as folder:  # the same wall through a mesh file
+        path = os.path.join(folder, "wall_64x80x2.vtu")
+        save_mesh(big, path)
+        from_file = load_mesh(path)
     print(f"\n1. issue 13 cases (ms per step; median/mean/max of {steps} after 3)")
     print(HEADER)
     results = {}
@@ -198,6 +204,7 @@ def main() -> None:
         ("64x80x2 wall, linear, 0.5 N", big, "linear", 0.5, False),
         ("64x80x2 wall, etmm, 0.5 N", big, "etmm", 0.5, False),
         ("64x80x2 wall, etmm, 0.5 N, former", big, "etmm", 0.5, True),
+        ("64x80x2 wall from a .vtu file, etmm, 0.5 N", from_file, "etmm", 0.5, False),
     ]:
         if former and mesh is big and args.quick:
             continue

@@ -246,6 +246,12 @@ class TangentFactorization:
             self._factor_tangent(h)
         self.mode = "tangent"
 
+    @property
+    def exact(self) -> bool:
+        """True when the preconditioner equals the current step matrix to round-off (rest factor
+        or its Woodbury correction): one application solves the step."""
+        return self.mode != "tangent"
+
     def record_iterations(self, iterations: int) -> None:
         """After a solve: schedule a refactorisation of a tangent that has gone stale."""
         if self.mode != "tangent":

@@ -31,7 +31,7 @@ from typing import Protocol
 import numpy as np
 
 from .errors import StabilityError, TissueError
-from .solvers import (
+from .solvers import (  # noqa: F401  (re-exported: the Krylov solvers used to live here)
     BiCGStabWorkspace,
     CGWorkspace,
     GMRESWorkspace,
@@ -39,6 +39,7 @@ from .solvers import (
     preconditioned_cg,
     preconditioned_gmres,
 )
+from .solvers import _masked_dot, _true_residual
 
 logger = logging.getLogger(__name__)
 
@@ -322,6 +323,7 @@ class BackwardEuler:
         self.mass = np.repeat(np.where(masses > 0.0, masses, 1.0)[:, None], 3, axis=1)
         self.dv = np.zeros((n, 3))  # previous solution: the warm start of the next solve
         self._dv_prev = np.zeros((n, 3))
+        self._direct_r = np.zeros((n, 3))
         # Initial guess of each solve: the last solution extrapolated linearly from the one before
         # (measured on the default AAA under 5 N: steady steps need 1 GMRES iteration instead of 2).
         self.extrapolate = True
@@ -358,6 +360,20 @@ class BackwardEuler:
         np.multiply(self.mass, p, out=tmp)
         out += tmp
 
+    def _direct_solve(self, b: np.ndarray):
+        """When the preconditioner IS the step matrix (to round-off): dv = P^-1 b, accepted on the
+        true residual (one iteration's worth, without the Krylov bookkeeping: two system products
+        fewer than a 1-iteration CG/GMRES); None lets the Krylov solver continue from dv."""
+        free = self.free
+        b_norm = math.sqrt(_masked_dot(b, b, free))
+        self.preconditioner(b, self.dv)
+        if b_norm == 0.0:
+            return 0, 0.0, True
+        r_norm = _true_residual(self._apply_system, b, self.dv, free, self._direct_r, self._tmp)
+        if r_norm <= self.tolerance * b_norm:
+            return 1, r_norm / b_norm, True
+        return None
+
     def step(self, u: np.ndarray, v: np.ndarray, f_ext: np.ndarray, dt: float) -> StepStatistics:
         """Advance ``u``, ``v`` in place by one backward-Euler step of size ``dt``."""
         h = float(dt)
@@ -384,7 +400,12 @@ class BackwardEuler:
             np.subtract(self.dv, self._dv_prev, out=tmp)
             np.copyto(self._dv_prev, self.dv)
             self.dv += tmp
-        if nonsymmetric:
+        direct = self._direct_solve(b) if getattr(self.preconditioner, "exact", False) else None
+        if direct is not None:
+            # labelled with the Krylov method it stands for (its first iteration, exact here)
+            self.last_solver = self.nonsymmetric_solver if nonsymmetric else "cg"
+            iterations, residual, converged = direct
+        elif nonsymmetric:
             n = u.shape[0]
             if self.nonsymmetric_solver == "gmres":
                 if self._nonsymmetric_work is None:
