@@ -538,7 +538,8 @@ class TissueModel:
         if x is None:  # an assembled tangent factor: solve, then refine against the true matrix
             rhs = np.zeros((pc.free_dofs.size, free_cols.size))
             rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
-            x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent)
+            x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent,
+                                        tolerance=max(float(self.params.cg_tolerance), 1e-11))
             x = x[free_index[dofs[free_cols]], :]
         w = np.zeros((dofs.size, dofs.size))
         w[np.ix_(free_cols, free_cols)] = (h * h) * x
@@ -546,7 +547,8 @@ class TissueModel:
 
     def _refine_compliance(self, pc, rhs, x, h, consistent, tolerance=1e-11, max_sweeps=50):
         """Iterative refinement X += P^-1 (E - A X) (P the possibly lagging tangent factor, A the
-        current step matrix) until the correction is below tolerance * max |X|."""
+        current step matrix) until the correction is below tolerance * max |X| (the model's
+        cg_tolerance: the accuracy the step itself is solved to)."""
         n = self.mesh.n_nodes
         free = pc.free_dofs
         mass = np.repeat(np.where(self.masses > 0.0, self.masses, 1.0), 3)[free]
