@@ -233,12 +233,19 @@ class TangentFactorization:
         if h != self._h:
             self._set_step(h)
         ids = self.force_field.nonlinear_element_ids()
+        # None: a law whose tangent is not assembled (hyperelastic); the rest factor only
+        # preconditions it.
+        self._approximate = ids is None
         if ids is None or ids.size == 0:
             self.mode = "rest"
             return
         nodes = np.unique(self.force_field.active_tets[ids])
         dofs = self._free_index[(3 * nodes[:, None] + np.arange(3)).ravel()]
-        if np.count_nonzero(dofs >= 0) <= self.max_lowrank_dofs:
+        n_free = np.count_nonzero(dofs >= 0)
+        if n_free == 0:  # every super-threshold element sits on fixed nodes: nothing to correct
+            self.mode = "rest"
+            return
+        if n_free <= self.max_lowrank_dofs:
             self._update_lowrank(h, nodes)
             self.mode = "lowrank"
             return
@@ -250,7 +257,9 @@ class TangentFactorization:
     def exact(self) -> bool:
         """True when the preconditioner equals the current step matrix to round-off (rest factor
         or its Woodbury correction): one application solves the step."""
-        return self.mode != "tangent"
+        return self.mode != "tangent" and not self._approximate
+
+    _approximate = False
 
     def record_iterations(self, iterations: int) -> None:
         """After a solve: schedule a refactorisation of a tangent that has gone stale."""
@@ -340,7 +349,7 @@ class TangentFactorization:
         """(A^-1)[d, d] for the free dofs d of ``nodes`` (node-major), from the cached columns of
         A_0^-1 and the Woodbury correction: O(k p) once the nodes' columns are cached; None when
         the preconditioner is an assembled tangent factor (not exact)."""
-        if self.mode == "tangent":
+        if not self.exact:
             return None
         dofs, rows = self._ensure_columns(nodes)
         y = self._z_rows[np.ix_(rows, dofs)]  # (A_0^-1)[d, d] (symmetric)

@@ -535,45 +535,52 @@ class TissueModel:
         free_index = pc._free_index
         free_cols = np.flatnonzero(free_index[dofs] >= 0)
         x = pc.inverse_block(nodes)  # exact modes: cached columns of A_0^-1 (+ Woodbury), O(k p)
-        if x is None:  # an assembled tangent factor: solve, then refine against the true matrix
+        if x is None:  # a lagging tangent factor or hyperelastic: solve, refine against the true matrix
             rhs = np.zeros((pc.free_dofs.size, free_cols.size))
             rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
             x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent,
-                                        tolerance=max(float(self.params.cg_tolerance), 1e-11))
+                                        tolerance=float(self.params.cg_tolerance))
             x = x[free_index[dofs[free_cols]], :]
         w = np.zeros((dofs.size, dofs.size))
         w[np.ix_(free_cols, free_cols)] = (h * h) * x
         return w
 
-    def _refine_compliance(self, pc, rhs, x, h, consistent, tolerance=1e-11, max_sweeps=50):
-        """Iterative refinement X += P^-1 (E - A X) (P the possibly lagging tangent factor, A the
-        current step matrix) until the correction is below tolerance * max |X| (the model's
-        cg_tolerance: the accuracy the step itself is solved to)."""
+    def _refine_compliance(self, pc, rhs, x, h, consistent, tolerance=1e-11):
+        """Columns of A^-1 (A the current step matrix) for the unit right-hand sides ``rhs`` (free
+        numbering) by preconditioned GMRES per column, started from ``x`` = P^-1 rhs (P the
+        lagging tangent factor, or the rest factor for the hyperelastic law), to ``tolerance``
+        (the model's cg_tolerance: the accuracy the step itself is solved to)."""
+        from .solvers import GMRESWorkspace, preconditioned_gmres
+
         n = self.mesh.n_nodes
-        free = pc.free_dofs
-        mass = np.repeat(np.where(self.masses > 0.0, self.masses, 1.0), 3)[free]
+        free_dofs = pc.free_dofs
+        mass = np.repeat(np.where(self.masses > 0.0, self.masses, 1.0)[:, None], 3, axis=1)
+        free = np.repeat((~self.fixed)[:, None], 3, axis=1).astype(np.float64)
         ff = self.force_field
-        viscous = self.params.viscosity > 0.0
-        full = np.zeros((n, 3))
-        out = np.zeros((n, 3))
+        c_scale = h if self.params.viscosity > 0.0 else 0.0
+        scratch = np.zeros((n, 3))
 
-        def apply(columns):
-            result = np.empty_like(columns)
-            for c in range(columns.shape[1]):
-                full.fill(0.0)
-                full.reshape(-1)[free] = columns[:, c]
-                ff.system_matvec(full, h * h, h if viscous else 0.0, out, consistent)
-                result[:, c] = out.reshape(-1)[free] + mass * columns[:, c]
-            return result
+        def apply(p, out):
+            ff.system_matvec(p, h * h, c_scale, out, consistent)
+            np.multiply(mass, p, out=scratch)
+            out += scratch
 
-        for _ in range(max_sweeps):
-            correction = pc.solve_matrix(rhs - apply(x))
-            x = x + correction
-            if np.abs(correction).max() <= tolerance * np.abs(x).max():
-                return x
-        logger.warning("compliance: iterative refinement stopped after %d sweeps (last correction %.3g of the "
-                       "solution)", max_sweeps, float(np.abs(correction).max() / np.abs(x).max()))
-        return x
+        work = GMRESWorkspace(n)
+        b = np.zeros((n, 3))
+        column = np.zeros((n, 3))
+        result = np.empty_like(x)
+        for c in range(rhs.shape[1]):
+            b.fill(0.0)
+            b.reshape(-1)[free_dofs] = rhs[:, c]
+            column.fill(0.0)
+            column.reshape(-1)[free_dofs] = x[:, c]
+            iterations, residual, converged = preconditioned_gmres(
+                apply, b, column, pc, free, tolerance, self.params.cg_max_iterations, work)
+            if not converged:
+                logger.warning("compliance: column %d reached a relative residual of %.3g in %d GMRES iterations",
+                               c, residual, iterations)
+            result[:, c] = column.reshape(-1)[free_dofs]
+        return result
 
     def surface_velocities(self) -> np.ndarray:
         """(n_surface, 3) current velocities of the surface nodes."""
