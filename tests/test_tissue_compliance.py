@@ -47,6 +47,7 @@ def test_compliance_equals_finite_differences_of_a_step(case):
     pc = model.integrator.preconditioner
     if case == "etmm-lowrank":
         pc.max_lowrank_dofs = 10**9
+        pc.max_new_lowrank_dofs = 10**9
     elif case.startswith("etmm"):
         pc.max_lowrank_dofs = -1
         if case == "etmm-stale-tangent":  # factorise once, then let it lag the tangent

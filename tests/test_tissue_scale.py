@@ -116,6 +116,7 @@ def test_displacement_equals_former_implementation_to_solver_tolerance(sizes, lo
     pc = model.integrator.preconditioner
     if strategy == "lowrank":
         pc.max_lowrank_dofs = 10**9
+        pc.max_new_lowrank_dofs = 10**9
     elif strategy == "tangent":
         pc.max_lowrank_dofs = -1
     reference_model = TissueModel(mesh, params)

@@ -61,6 +61,7 @@ def test_copy_of_a_stepped_model_continues_bit_identically(case, how):
     model = TissueModel(MESH, TissueParameters(**params))
     if max_lowrank is not None:
         model.integrator.preconditioner.max_lowrank_dofs = max_lowrank
+        model.integrator.preconditioner.max_new_lowrank_dofs = max(max_lowrank, 0)
     model.set_contact_force(load(model, force))
     for k in range(4):
         model.step(k * dt, dt)

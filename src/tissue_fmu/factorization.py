@@ -44,6 +44,9 @@ __all__ = ["TangentFactorization", "sparse_lu"]
 #: Woodbury (low-rank) correction up to this many free dofs on the super-threshold elements'
 #: nodes; above it the tangent is assembled and factorised.  Measured (bench_tissue_step.py).
 MAX_LOWRANK_DOFS = 600
+#: ... and while a step needs at most this many new columns of A_0^-1 (one multi-right-hand-side
+#: solve; more cost about as much as factorising the tangent, which then serves the next steps).
+MAX_NEW_LOWRANK_DOFS = 150
 #: Refactorise the assembled tangent at the next step once a solve needs more iterations, or once
 #: the iterations beyond the first since the last factorisation add up to REFACTOR_BUDGET.
 REFACTOR_ITERATIONS = 6
@@ -86,6 +89,52 @@ def sparse_lu(matrix_csc):
     return splu(matrix_csc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
+class _ColumnCache:
+    """Rows of Z^T = (A_0^-1 U)^T for the free dofs of nodes, solved in one multi-right-hand-side
+    call per request for the nodes not cached yet (rows: one per free dof, node-major)."""
+
+    def __init__(self, free_index: np.ndarray, n_free: int):
+        self._free_index = free_index
+        self.rows = np.zeros((0, n_free))
+        self.count = 0
+        self.node_row: dict[int, int] = {}
+
+    def _free(self, v: int) -> np.ndarray:
+        d = self._free_index[3 * v: 3 * v + 3]
+        return d[d >= 0]
+
+    def missing_dofs(self, nodes) -> int:
+        return sum(self._free(int(v)).size for v in nodes if int(v) not in self.node_row)
+
+    def ensure(self, nodes, factor) -> tuple[np.ndarray, np.ndarray]:
+        """(free dof ids, cached rows) of ``nodes``; solves the missing ones with ``factor``."""
+        new = [int(v) for v in nodes if int(v) not in self.node_row and self._free(int(v)).size]
+        if new:
+            new_dofs = np.concatenate([self._free(v) for v in new])
+            rhs = np.zeros((self.rows.shape[1], new_dofs.size))
+            rhs[new_dofs, np.arange(new_dofs.size)] = 1.0
+            columns = factor.solve(rhs, trans="T")
+            r = self.count
+            if r + new_dofs.size > self.rows.shape[0]:
+                grown = np.zeros((max(2 * self.rows.shape[0], r + new_dofs.size, 24), self.rows.shape[1]))
+                grown[:r] = self.rows[:r]
+                self.rows = grown
+            self.rows[r: r + new_dofs.size] = columns.T
+            for v in new:
+                self.node_row[v] = r
+                r += self._free(v).size
+            self.count = r
+        dofs, rows = [], []
+        for v in nodes:
+            v = int(v)
+            free = self._free(v)
+            if free.size:
+                r = self.node_row[v]
+                dofs.extend(free.tolist())
+                rows.extend(range(r, r + free.size))
+        return np.asarray(dofs, dtype=np.int64), np.asarray(rows, dtype=np.int64)
+
+
 class TangentFactorization:
     """Preconditioner ``z ~ (M + h C + h^2 K_t)^-1 r``, exact except for a large non-linear set
     (module docstring).  ``update(h)`` after the force field's ``add_forces``; ``__call__(r, out)``;
@@ -94,7 +143,8 @@ class TangentFactorization:
     name = "factorized"
 
     def __init__(self, force_field, masses: np.ndarray, fixed: np.ndarray, *,
-                 max_lowrank_dofs: int = MAX_LOWRANK_DOFS, refactor_iterations: int = REFACTOR_ITERATIONS,
+                 max_lowrank_dofs: int = MAX_LOWRANK_DOFS, max_new_lowrank_dofs: int = MAX_NEW_LOWRANK_DOFS,
+                 refactor_iterations: int = REFACTOR_ITERATIONS,
                  refactor_budget: int = REFACTOR_BUDGET, backend: str = "auto"):
         ff = self.force_field = force_field
         n = ff.n_nodes
@@ -106,6 +156,7 @@ class TangentFactorization:
         #: 1.1-1.8x faster solves than SuperLU here), else SuperLU; the tangent is always SuperLU.
         self.backend = backend
         self.max_lowrank_dofs = int(max_lowrank_dofs)
+        self.max_new_lowrank_dofs = int(max_new_lowrank_dofs)
         self.refactor_iterations = int(refactor_iterations)
         self.refactor_budget = int(refactor_budget)
         self._extra_iterations = 0  # iterations beyond the first since the tangent was factorised
@@ -175,11 +226,10 @@ class TangentFactorization:
         self._tangent_data = None   # free-block data of the factorised tangent
         self._lu_tangent = None
         # Woodbury cache: rows of Z^T (one per free dof of a cached node), node -> first row.
-        self._z_rows = np.zeros((0, nf))
-        self._z_count = 0
-        self._z_node_row: dict[int, int] = {}
+        self._z = _ColumnCache(self._free_index, nf)   # the steps' Woodbury columns
+        self._zc = _ColumnCache(self._free_index, nf)  # compliance requests' own (never read by a step)
         self._dofs = np.zeros(0, dtype=np.int64)      # free dof ids of the current set
-        self._rows = np.zeros(0, dtype=np.int64)      # their rows in _z_rows
+        self._rows = np.zeros(0, dtype=np.int64)      # their rows in the Woodbury cache
         self._small_lu = None
         self._small_c = None
         self._rhs = np.zeros(nf)
@@ -221,9 +271,8 @@ class TangentFactorization:
         self.factorizations += 1
         self._h = h
         # Everything derived from A_0 is stale.
-        self._z_rows = np.zeros((0, self._free_dofs.size))
-        self._z_count = 0
-        self._z_node_row = {}
+        self._z = _ColumnCache(self._free_index, self._free_dofs.size)
+        self._zc = _ColumnCache(self._free_index, self._free_dofs.size)
         self._tangent_data = None
         self._lu_tangent = None
         logger.debug("factorised M + h C + h^2 K0 for h = %.4g s: %d free dofs", h, self._free_dofs.size)
@@ -245,7 +294,10 @@ class TangentFactorization:
         if n_free == 0:  # every super-threshold element sits on fixed nodes: nothing to correct
             self.mode = "rest"
             return
-        if n_free <= self.max_lowrank_dofs:
+        # hysteresis: an assembled tangent is left for the Woodbury form only once the set is half
+        # the size limit (each entry into the tangent mode costs a factorisation)
+        limit = self.max_lowrank_dofs if self.mode != "tangent" else self.max_lowrank_dofs // 2
+        if n_free <= limit and self._z.missing_dofs(nodes) <= self.max_new_lowrank_dofs:
             self._update_lowrank(h, nodes)
             self.mode = "lowrank"
             return
@@ -281,39 +333,9 @@ class TangentFactorization:
         self._extra_iterations = 0
         logger.debug("factorised the assembled tangent: %d super-threshold elements", ids.shape[0])
 
-    def _ensure_columns(self, nodes) -> tuple[np.ndarray, np.ndarray]:
-        """Cached rows of Z^T = (A_0^-1 U)^T for the free dofs of ``nodes``: (free dof ids, rows).
-
-        Each node's (up to) three columns are solved on their own, so a node's columns are the same
-        bits whichever call first needed them (a step's Woodbury set or a compliance request)."""
-        nf = self._free_dofs.size
-        dofs, rows = [], []
-        for v in nodes:
-            v = int(v)
-            d = self._free_index[3 * v: 3 * v + 3]
-            free = d[d >= 0]
-            if free.size == 0:
-                continue
-            r = self._z_node_row.get(v)
-            if r is None:
-                rhs = np.zeros((nf, free.size))
-                rhs[free, np.arange(free.size)] = 1.0
-                columns = self._lu_rest.solve(rhs, trans="T")
-                r = self._z_count
-                if r + free.size > self._z_rows.shape[0]:
-                    grown = np.zeros((max(2 * self._z_rows.shape[0], r + free.size, 24), nf))
-                    grown[:r] = self._z_rows[:r]
-                    self._z_rows = grown
-                self._z_rows[r: r + free.size] = columns.T
-                self._z_count += free.size
-                self._z_node_row[v] = r
-            dofs.extend(free.tolist())
-            rows.extend(range(r, r + free.size))
-        return np.asarray(dofs, dtype=np.int64), np.asarray(rows, dtype=np.int64)
-
     def _update_lowrank(self, h: float, nodes: np.ndarray) -> None:
         # Current set: free dofs and their cached rows, node-major.
-        dofs, rows = self._ensure_columns(nodes)
+        dofs, rows = self._z.ensure(nodes, self._lu_rest)
         self._dofs = dofs
         self._rows = rows
         k = self._dofs.size
@@ -329,7 +351,7 @@ class TangentFactorization:
         ok = (r_idx >= 0) & (c_idx >= 0)
         small_c = np.zeros((k, k))
         np.add.at(small_c, (r_idx[ok], c_idx[ok]), (h * h) * values[ok])
-        g = self._z_rows[np.ix_(self._rows, self._dofs)].T  # G[a, b] = Z[D[a], b] = z_row(D[b])[D[a]]
+        g = self._z.rows[np.ix_(self._rows, self._dofs)].T  # G[a, b] = Z[D[a], b] = z_row(D[b])[D[a]]
         self._small_c = small_c
         self._small_lu = sla.lu_factor(np.eye(k) + small_c @ g, check_finite=False)
 
@@ -342,7 +364,7 @@ class TangentFactorization:
             if self.mode == "lowrank":
                 t = self._small_c @ x[self._dofs]
                 s = sla.lu_solve(self._small_lu, t, check_finite=False)
-                kernels.rows_transpose_subtract(self._z_rows, self._rows, s, x)
+                kernels.rows_transpose_subtract(self._z.rows, self._rows, s, x)
         out.reshape(-1)[self._free_dofs] = x
 
     def inverse_block(self, nodes) -> np.ndarray | None:
@@ -351,13 +373,12 @@ class TangentFactorization:
         the preconditioner is an assembled tangent factor (not exact)."""
         if not self.exact:
             return None
-        dofs, rows = self._ensure_columns(nodes)
-        y = self._z_rows[np.ix_(rows, dofs)]  # (A_0^-1)[d, d] (symmetric)
+        dofs, rows = self._zc.ensure(nodes, self._lu_rest)
+        y = self._zc.rows[np.ix_(rows, dofs)]  # (A_0^-1)[d, d] (symmetric)
         if self.mode == "lowrank":
-            y_set = self._z_rows[np.ix_(rows, self._dofs)].T           # (A_0^-1)[D, d]
-            z_req = self._z_rows[np.ix_(self._rows, dofs)].T           # (A_0^-1)[d, D]
+            y_set = self._zc.rows[np.ix_(rows, self._dofs)].T          # (A_0^-1)[D, d]
             s = sla.lu_solve(self._small_lu, self._small_c @ y_set, check_finite=False)
-            y = y - z_req @ s
+            y = y - y_set.T @ s                                         # (A_0^-1)[d, D] = y_set^T
         return y
 
     def solve_matrix(self, rhs_free: np.ndarray) -> np.ndarray:
@@ -368,7 +389,7 @@ class TangentFactorization:
         if self.mode == "lowrank":
             t = self._small_c @ x[self._dofs]
             s = sla.lu_solve(self._small_lu, t, check_finite=False)
-            x -= self._z_rows[self._rows].T @ s
+            x -= self._z.rows[self._rows].T @ s
         return x
 
     @property
