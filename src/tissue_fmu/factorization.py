@@ -2,28 +2,37 @@
 
 The implicit step solves ``A dv = b`` with ``A = M + h C + h^2 K_t`` (lumped mass, Kelvin-Voigt
 damping, tangent stiffness).  :class:`TangentFactorization` factorises the rest matrix
-``A_0 = M + h C + h^2 K_0`` once per step size (SuperLU, symmetric fill-reducing ordering, no
-pivoting) and keeps the preconditioner equal to the CURRENT ``A`` wherever that is affordable, so
-a Krylov solve takes one iteration:
+``A_0 = M + h C + h^2 K_0`` once per step size (CHOLMOD through ``cholespy`` when installed,
+else SuperLU with a symmetric fill-reducing ordering and no pivoting) and keeps the
+preconditioner equal to the CURRENT ``A`` wherever that is affordable, so the step is one
+application of it (accepted on the true residual; see ``BackwardEuler``):
 
 * no element above the ETMM threshold (the linear law, small loads): ``A = A_0``, exact;
 * a few super-threshold elements (``k`` free dofs on their nodes, ``k <= max_lowrank_dofs``):
   ``A = A_0 + U C U^T`` with ``C`` the assembled consistent-tangent correction (k x k) on those
   dofs; Woodbury, ``A^-1 = A_0^-1 - Z (I + C G)^-1 C U^T A_0^-1`` with ``Z = A_0^-1 U`` cached per
-  node (computed once, when a node first joins the set) and ``G = U^T Z``: one factor solve, a
-  k x k dense solve and an n x k product per application, exact to round-off;
-* many (the whole wall stiffening): the assembled tangent ``A`` is factorised and reused as the
-  preconditioner of GMRES while it stays good; it is refactorised at the next step when a solve
-  needed more than ``refactor_iterations`` iterations (deterministic: the choice depends only on
-  the iteration counts, never on timing).
+  node (solved once, when a node first joins the set, at most ``max_new_lowrank_dofs`` new
+  columns per step) and ``G = U^T Z``: one factor solve, a k x k dense solve and an n x k product
+  per application, exact to round-off;
+* many (the whole wall stiffening): the assembled consistent tangent ``A`` is factorised
+  (SuperLU: it is not symmetric) and reused as the preconditioner of GMRES while it stays good;
+  it is refactorised at the next step when a solve needed more than ``refactor_iterations``
+  iterations or the iterations beyond the first since the last factorisation reach
+  ``refactor_budget`` (about the cost of one factorisation in solves: ski rental).  The choice
+  depends only on iteration counts, never on timing, so runs are deterministic.
 
 Hyperelastic (no assembled tangent): the rest factorisation, as before.  Measured choices are in
 ``benchmarks/bench_tissue_step.py``.  Fixed dofs are filtered out (the factors cover the free
 dofs only), so the preconditioner returns 0 there.
 
-State: the SuperLU factors cannot be pickled; :meth:`__getstate__` drops them and
+State: the SuperLU/CHOLMOD factors cannot be pickled; :meth:`__getstate__` drops them and
 :meth:`__setstate__` refactorises the same matrices (the rest matrix from ``h``, the tangent
 from its stored values), which reproduces the factors bit for bit.
+
+Measured (benchmarks/bench_tissue_step.py, this 2-core machine, shared): default wall, ETMM,
+5 N: former step 148 ms median (16 GMRES iterations on the rest factor), now 28 ms median, 66 ms
+mean (transient refactorisations of ~220 ms); 64x80x2 wall, ETMM, 0.5 N: 210 -> 34 ms (Woodbury,
+one solve); the factor solve is most of every step at 10k+ nodes.
 """
 
 from __future__ import annotations
