@@ -27,8 +27,9 @@ import numpy as np
 
 from . import kernels
 from .errors import ForceFieldError, MaterialError
-from .laws import LAWS, make_law
+from .laws import make_law
 from .materials import (
+    LAWS,
     element_array,
     lame_parameters,
     viscous_lame_parameters,
@@ -98,7 +99,7 @@ class TensorMassForceField:
         tets = np.ascontiguousarray(tets, dtype=np.int64)
         n, m = points.shape[0], tets.shape[0]
         if law not in LAWS:
-            raise ForceFieldError(f"law must be one of {tuple(LAWS)} (got {law!r})")
+            raise ForceFieldError(f"law must be one of {LAWS} (got {law!r})")
         if not _finite_scalar(rv_alpha) or rv_alpha <= 0.0:
             raise MaterialError(f"rv_alpha must be a finite number > 0 (got {rv_alpha!r}): the Raghavan-Vorp "
                                 "alpha in Pa, e.g. 0.174e6")

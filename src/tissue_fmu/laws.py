@@ -7,8 +7,8 @@ The shared element data (tets, shape gradients, volumes, Lame coefficients, rest
 uniform Kelvin-Voigt ratio ``tau``) live on the :class:`~tissue_fmu.forcefield.TensorMassForceField`
 the law is built for; the law never validates (the force field does).
 
-``LAWS`` maps each law name to its class; ``laws.LAWS`` and ``materials.LAWS`` are the one list
-of names (TissueParameters and the force field check against it).
+``LAW_CLASSES`` maps each law name to its class; ``materials.LAWS`` is the one list of names
+(TissueParameters and the force field check against it).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from .materials import LAWS as LAW_NAMES
 from .materials import rv_stiffening_ratio
 from .precompute import edge_element_adjacency, edge_screen_limits
 
-__all__ = ["MaterialLaw", "LinearLaw", "ETMMLaw", "HyperelasticLaw", "LAWS", "make_law"]
+__all__ = ["MaterialLaw", "LinearLaw", "ETMMLaw", "HyperelasticLaw", "LAW_CLASSES", "make_law"]
 
 # ETMM: above this fraction of candidate (non-linear-capable) tets, candidates are pre-screened
 # by edge strains fused into the linear pass instead of checking every candidate tet.
@@ -302,9 +302,9 @@ class HyperelasticLaw(_StiffeningLaw):
                                                  self._kappa, u))
 
 
-LAWS = {"linear": LinearLaw, "etmm": ETMMLaw, "hyperelastic": HyperelasticLaw}
-assert tuple(LAWS) == LAW_NAMES
+LAW_CLASSES = {"linear": LinearLaw, "etmm": ETMMLaw, "hyperelastic": HyperelasticLaw}
+assert tuple(LAW_CLASSES) == LAW_NAMES
 
 
 def make_law(name: str, ff) -> MaterialLaw:
-    return LAWS[name](ff)
+    return LAW_CLASSES[name](ff)
