@@ -1,109 +1,296 @@
-"""Tissue step cost on the default AAA mesh against the 30 Hz frame budget (33.3 ms).
+"""Implicit tissue step against the 30 Hz frame budget (33.3 ms), at growing wall sizes (issue 13).
 
-Measured side by side in one run:
-  * implicit backward Euler, factorised preconditioner, linear and ETMM laws, under a 1 N load
-    (ETMM stays linear) and a 5 N load (ETMM corrects ~half the elements: GMRES or BiCGSTAB on
-    the consistent tangent): step time, Krylov iterations, real-time factor = 33.3 ms / step;
-  * the same with the Jacobi preconditioner (the matrix-free textbook choice) for comparison;
-  * explicit symplectic Euler at its automatic substep count: one whole 1/30 s frame, and its
-    cost relative to the implicit step.
+Setting (issue 13): ETMM or linear law, implicit backward Euler at 30 Hz, viscosity 50 Pa s,
+force in -x spread over the 4 surface nodes nearest the sac contact point (0.022, 0, 0.065), full
+wall active; step time = median of the timed steps after 3 warm-up steps (mean and max are
+printed too: a refactorisation shows up there).  Everything is measured side by side in one run;
+this 2-core machine is shared, so compare the ratios, not the absolute times, between runs.
 
-Run: .venv/bin/python benchmarks/bench_tissue_step.py [--steps 30]
+Printed:
+  1. the issue's cases, the current step against the former implementation (rest-state
+     factorisation as GMRES preconditioner, consistent ETMM tangent over every candidate tet,
+     no extrapolated warm start), and the ETMM / linear cost at the same load;
+  2. how the step cost grows with the node count (>= 3 wall sizes) and where it goes: force
+     (add_forces), tangent products, factorisation (rest factor, Woodbury columns and
+     corrections, tangent refactorisations), solves (factor applications), other;
+  3. the tangent strategies and solver backends measured choice by choice (default wall, 5 N);
+  4. the compliance block for p = 4..16 contact nodes, relative to one step.
+
+Run: python benchmarks/bench_tissue_step.py [--steps 10] [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import os
 import statistics
+import tempfile
 import time
+from collections import defaultdict
 
 import numpy as np
 
-from tissue_fmu import TissueModel, TissueParameters, aaa_mesh
+from tissue_fmu import TissueModel, TissueParameters, aaa_mesh, kernels, load_mesh, save_mesh
+from tissue_fmu.factorization import TangentFactorization, cholmod_available
+from tissue_fmu.integrators import BackwardEuler, FactorizedPreconditioner
+from tissue_fmu.precompute import tensors_to_csr
 
 FRAME = 1.0 / 30.0
 BUDGET_MS = 1000.0 * FRAME
+CONTACT_POINT = (0.022, 0.0, 0.065)
+VISCOSITY = 50.0
 
 
-def sac_patch_force(model: TissueModel, total: float) -> np.ndarray:
-    """(n_surface, 3): ``total`` N pushing inward on the outer sac wall, +x side, mid-sac."""
-    points = model.mesh.points
-    outer = np.intersect1d(model.mesh.node_sets["outer"], model.surface_nodes)
-    p = points[outer]
-    near = (np.abs(p[:, 2] - 0.5 * points[:, 2].max()) < 0.008) & (p[:, 0] > 0.9 * np.hypot(p[:, 0], p[:, 1]))
-    patch = outer[near]
+def patch_force(model: TissueModel, total: float, k: int = 4) -> np.ndarray:
+    d = np.linalg.norm(model.surface_positions() - np.asarray(CONTACT_POINT), axis=1)
     force = np.zeros((model.n_surface, 3))
-    force[np.searchsorted(model.surface_nodes, patch), 0] = -total / patch.size
+    force[np.argsort(d)[:k], 0] = -total / k
     return force
 
 
-def time_implicit(mesh, law: str, load: float, steps: int, nonsymmetric_solver="gmres", **params) -> dict:
-    t0 = time.perf_counter()
-    model = TissueModel(mesh, TissueParameters(law=law, **params))
-    build = time.perf_counter() - t0
-    model.integrator.nonsymmetric_solver = nonsymmetric_solver
-    model.set_contact_force(sac_patch_force(model, load))
-    t0 = time.perf_counter()
-    model.step(0.0, FRAME)  # factorisation (once per dt) and first numba calls
-    first = time.perf_counter() - t0
-    times, iterations, converged = [], [], True
-    for k in range(1, steps + 1):
+# --------------------------------------------------------------------------------------
+# the former implementation (before issue 13), for the before/after columns
+# --------------------------------------------------------------------------------------
+
+
+class _FormerBackwardEuler(BackwardEuler):
+    """The step as it was: separate tangent and damping products, the all-candidate consistent
+    ETMM kernel, the warm start without extrapolation."""
+
+    def _apply_system(self, p, out):
+        h = self._h
+        tmp = self._apply_tmp
+        self._tangent(p, out)
+        out *= h * h
+        if self.viscous:
+            self.force_field.damping_matvec(p, tmp)
+            tmp *= h
+            out += tmp
+        np.multiply(self.mass, p, out=tmp)
+        out += tmp
+
+
+def former_model(mesh, law: str) -> TissueModel:
+    model = TissueModel(mesh, TissueParameters(law=law, viscosity=VISCOSITY))
+    ff = model.force_field
+    damping = ff.damping_tensors()
+    pc = FactorizedPreconditioner(ff.stiffness_matrix(), model.masses, model.fixed,
+                                  damping=None if damping is None else tensors_to_csr(damping))
+    integrator = _FormerBackwardEuler(ff, model.masses, model.fixed, model.params.cg_tolerance,
+                                      model.params.cg_max_iterations, viscous=True, preconditioner=pc)
+    integrator.extrapolate = False
+    if law == "etmm":
+        def consistent(du, out, ff=ff):
+            out.fill(0.0)
+            k = ff.stiffness
+            kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, du, 1.0, out)
+            kernels.etmm_consistent_tangent(ff._tets, ff._grads, ff._volumes, ff._lam, ff._mu, ff._candidates,
+                                            ff._u_last, du, ff.nonlinear_strain_threshold, ff._beta_over_alpha, out)
+        ff.consistent_tangent_matvec = consistent
+    model.integrator = integrator
+    return model
+
+
+# --------------------------------------------------------------------------------------
+# timing with a split
+# --------------------------------------------------------------------------------------
+
+
+class _Timed:
+    """Wraps callables on an object, adding their wall time to a bucket."""
+
+    def __init__(self):
+        self.times = defaultdict(float)
+
+    def wrap(self, obj, name, bucket):
+        function = getattr(obj, name)
+
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                self.times[bucket] += time.perf_counter() - t0
+
+        setattr(obj, name, timed)
+
+
+class _TimedPreconditioner:
+    def __init__(self, inner, timer):
+        self.inner, self.timer = inner, timer
+
+    def update(self, h):
+        t0 = time.perf_counter()
+        self.inner.update(h)
+        self.timer.times["factorisation"] += time.perf_counter() - t0
+
+    def record_iterations(self, n):
+        if hasattr(self.inner, "record_iterations"):
+            self.inner.record_iterations(n)
+
+    def __call__(self, r, out):
+        t0 = time.perf_counter()
+        self.inner(r, out)
+        self.timer.times["solves"] += time.perf_counter() - t0
+
+
+def run(model: TissueModel, load: float, steps: int, warmup: int = 3, split: bool = False) -> dict:
+    model.set_contact_force(patch_force(model, load))
+    timer = _Timed()
+    pc = model.integrator.preconditioner
+    if split:
+        ff = model.force_field
+        timer.wrap(ff, "add_forces", "force")
+        for name in ("tangent_matvec", "consistent_tangent_matvec", "system_matvec", "damping_matvec"):
+            if hasattr(ff, name):
+                timer.wrap(ff, name, "tangent")
+        model.integrator.preconditioner = _TimedPreconditioner(pc, timer)
+    times, iterations = [], []
+    factorizations0 = getattr(pc, "factorizations", 0)
+    for k in range(warmup + steps):
+        if k == warmup:
+            timer.times.clear()
+            factorizations0 = getattr(pc, "factorizations", 0)
         t0 = time.perf_counter()
         model.step(k * FRAME, FRAME)
-        times.append(time.perf_counter() - t0)
-        iterations.append(model.solver_iterations)
-        converged &= model.solver_converged
-    step_ms = 1000.0 * statistics.median(times)
-    return dict(build=build, first=first, step_ms=step_ms, iterations=statistics.mean(iterations),
-                converged=converged, residual=model.solver_residual, reach=np.abs(model.displacement).max(),
-                nonlinear=model.nonlinear_fraction, solver=model.integrator.last_solver)
+        elapsed = time.perf_counter() - t0
+        if k >= warmup:
+            times.append(elapsed)
+            iterations.append(model.solver_iterations)
+    if split:
+        model.integrator.preconditioner = pc
+    total = sum(times)
+    parts = {key: 1000.0 * value / steps for key, value in timer.times.items()}
+    parts["other"] = 1000.0 * total / steps - sum(parts.values())
+    return dict(median=1000.0 * statistics.median(times), mean=1000.0 * total / steps, max=1000.0 * max(times),
+                iterations=statistics.mean(iterations), nonlinear=model.nonlinear_fraction,
+                factorizations=getattr(pc, "factorizations", 0) - factorizations0, parts=parts,
+                mode=getattr(pc, "mode", "rest"), displacement=model.displacement.copy())
+
+
+def line(label: str, r: dict) -> str:
+    return (f"{label:46s} {r['median']:8.1f} {r['mean']:8.1f} {r['max']:8.1f} {r['iterations']:6.2f} "
+            f"{r['factorizations']:5d} {r['nonlinear']:7.3f}  {r['mode']}")
+
+
+HEADER = f"{'case':46s} {'median':>8s} {'mean':>8s} {'max':>8s} {'iters':>6s} {'facts':>5s} {'nl frac':>7s}  mode"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=30, help="timed implicit steps per case")
+    parser.add_argument("--steps", type=int, default=10, help="timed steps per case (after 3 warm-up steps)")
+    parser.add_argument("--quick", action="store_true", help="skip the largest wall and the former 64x80x2 run")
     args = parser.parse_args()
+    steps = args.steps
+    print(f"frame budget {BUDGET_MS:.1f} ms; rest factor backend: "
+          f"{'CHOLMOD (cholespy)' if cholmod_available() else 'SuperLU (cholespy not installed)'}")
 
-    mesh = aaa_mesh()
-    print(f"default AAA mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tets, frame budget {BUDGET_MS:.1f} ms")
-    print(f"{'case':44s} {'step ms':>8s} {'iters':>6s} {'RT factor':>9s} {'conv':>5s} "
-          f"{'|u|max mm':>9s} {'nl frac':>7s} {'first ms':>8s}")
+    # 1. the issue's cases, before and after
+    default = aaa_mesh()
+    big = aaa_mesh(n_circumferential=64, n_axial=80, n_radial=2)
+    with tempfile.TemporaryDirectory() as folder:  # the same wall through a mesh file
+        path = os.path.join(folder, "wall_64x80x2.vtu")
+        save_mesh(big, path)
+        from_file = load_mesh(path)
+    print(f"\n1. issue 13 cases (ms per step; median/mean/max of {steps} after 3)")
+    print(HEADER)
     results = {}
-    cases = [
-        ("linear, 1 N, factorized", "linear", 1.0, {}),
-        ("etmm, 1 N, factorized", "etmm", 1.0, {}),
-        ("linear, 5 N, factorized", "linear", 5.0, {}),
-        ("etmm, 5 N, factorized (GMRES)", "etmm", 5.0, {}),
-        ("etmm, 5 N, factorized (BiCGSTAB)", "etmm", 5.0, dict(nonsymmetric_solver="bicgstab")),
-        ("etmm, 5 N, factorized (GMRES), tol 1e-4", "etmm", 5.0, dict(cg_tolerance=1e-4)),
-        ("linear, 1 N, jacobi (max 1000 it)", "linear", 1.0, dict(preconditioner="jacobi")),
-    ]
-    for label, law, load, params in cases:
-        slow = params.get("preconditioner") == "jacobi" or params.get("nonsymmetric_solver") == "bicgstab"
-        steps = min(args.steps, 5) if slow else args.steps
-        r = time_implicit(mesh, law, load, steps, **params)
-        results[label] = r
-        print(f"{label:44s} {r['step_ms']:8.1f} {r['iterations']:6.1f} {BUDGET_MS / r['step_ms']:9.2f} "
-              f"{str(r['converged']):>5s} {1000 * r['reach']:9.3f} {r['nonlinear']:7.3f} {1000 * r['first']:8.0f}")
+    for label, mesh, law, load, former in [
+        ("default wall, linear, 5 N", default, "linear", 5.0, False),
+        ("default wall, etmm, 5 N", default, "etmm", 5.0, False),
+        ("default wall, etmm, 5 N, former", default, "etmm", 5.0, True),
+        ("default wall, linear, 5 N, former", default, "linear", 5.0, True),
+        ("64x80x2 wall, linear, 0.5 N", big, "linear", 0.5, False),
+        ("64x80x2 wall, etmm, 0.5 N", big, "etmm", 0.5, False),
+        ("64x80x2 wall, etmm, 0.5 N, former", big, "etmm", 0.5, True),
+        ("64x80x2 wall from a .vtu file, etmm, 0.5 N", from_file, "etmm", 0.5, False),
+    ]:
+        if former and mesh is big and args.quick:
+            continue
+        model = former_model(mesh, law) if former else TissueModel(mesh, TissueParameters(law=law, viscosity=VISCOSITY))
+        results[label] = r = run(model, load, steps)
+        print(line(label, r))
+    a, b = results["default wall, etmm, 5 N"], results["default wall, linear, 5 N"]
+    print(f"ETMM / linear at 5 N (default wall): median {a['median'] / b['median']:.2f}, mean {a['mean'] / b['mean']:.2f}"
+          f"  (target <= 1.5; the paper reports 4)")
+    f = results["default wall, etmm, 5 N, former"]
+    print(f"speed-up over the former step, default wall ETMM 5 N: median {f['median'] / a['median']:.1f}x, "
+          f"mean {f['mean'] / a['mean']:.1f}x; max |u - u_former| / max |u| = "
+          f"{np.abs(a['displacement'] - f['displacement']).max() / np.abs(f['displacement']).max():.1e}")
+    if "64x80x2 wall, etmm, 0.5 N, former" in results:
+        f, a = results["64x80x2 wall, etmm, 0.5 N, former"], results["64x80x2 wall, etmm, 0.5 N"]
+        print(f"speed-up over the former step, 64x80x2 ETMM 0.5 N: median {f['median'] / a['median']:.1f}x")
+    print(f"64x80x2 ETMM 0.5 N / linear 0.5 N: {results['64x80x2 wall, etmm, 0.5 N']['median'] / results['64x80x2 wall, linear, 0.5 N']['median']:.2f}")
 
-    # Explicit: one whole frame at the automatic substep count.
-    model = TissueModel(mesh, TissueParameters(law="linear", integrator="explicit", substeps="auto"))
-    model.set_contact_force(sac_patch_force(model, 1.0))
-    model.step(0.0, 10 * model.critical_time_step)  # numba warm-up
-    model.reset()
-    model.set_contact_force(sac_patch_force(model, 1.0))
-    t0 = time.perf_counter()
-    model.step(0.0, FRAME)
-    explicit_ms = 1000.0 * (time.perf_counter() - t0)
-    implicit_ms = results["linear, 1 N, factorized"]["step_ms"]
-    print(f"\nexplicit symplectic Euler, linear: critical step {1e6 * model.critical_time_step:.2f} us, "
-          f"{model.substeps} substeps per frame, frame {explicit_ms:.0f} ms "
-          f"({1000 * explicit_ms / model.substeps:.0f} us/substep), RT factor {BUDGET_MS / explicit_ms:.3f}")
-    print(f"explicit frame / implicit step (linear, factorized): {explicit_ms / implicit_ms:.0f}x")
-    jacobi = results["linear, 1 N, jacobi (max 1000 it)"]
-    print(f"jacobi / factorized step time (linear): {jacobi['step_ms'] / implicit_ms:.1f}x, "
-          f"jacobi final relative residual {jacobi['residual']:.2e} (factorized "
-          f"{results['linear, 1 N, factorized']['residual']:.1e})")
+    # 2. growth with the node count and where the time goes
+    sizes = [(32, 40, 2), (48, 60, 2), (64, 80, 2)] + ([] if args.quick else [(80, 100, 2)])
+    print("\n2. growth with the node count (etmm, 0.5 N and 5 N; ms per step, mean of the timed steps)")
+    print(f"{'wall':10s} {'nodes':>6s} {'load':>5s} {'median':>8s} {'mean':>8s} {'force':>7s} {'tangent':>8s} "
+          f"{'factor':>7s} {'solves':>7s} {'other':>7s} {'iters':>6s} {'mode':>8s}")
+    for nc, na, nr in sizes:
+        mesh = aaa_mesh(n_circumferential=nc, n_axial=na, n_radial=nr)
+        for load in (0.5, 5.0):
+            model = TissueModel(mesh, TissueParameters(law="etmm", viscosity=VISCOSITY))
+            r = run(model, load, steps, split=True)
+            p = r["parts"]
+            print(f"{nc}x{na}x{nr:<5d} {mesh.n_nodes:6d} {load:5.1f} {r['median']:8.1f} {r['mean']:8.1f} "
+                  f"{p.get('force', 0):7.2f} {p.get('tangent', 0):8.2f} {p.get('factorisation', 0):7.2f} "
+                  f"{p.get('solves', 0):7.2f} {p['other']:7.2f} {r['iterations']:6.2f} {r['mode']:>8s}")
+
+    # 3. choices, one at a time (default wall, ETMM, 5 N; and 64x80x2, 0.5 N for the backend)
+    print("\n3. choices measured one at a time (ms per step)")
+    print(HEADER)
+    choices = [
+        ("default, 5 N: chosen (budget 24, >6 its)", default, 5.0, {}),
+        ("default, 5 N: refactor every step", default, 5.0, dict(refactor_iterations=0)),
+        ("default, 5 N: refactor when > 2 its", default, 5.0, dict(refactor_iterations=2, refactor_budget=10**9)),
+        ("default, 5 N: never refactor", default, 5.0, dict(refactor_iterations=10**9, refactor_budget=10**9)),
+        ("default, 5 N: no extrapolated warm start", default, 5.0, dict(extrapolate=False)),
+        ("default, 5 N: rest factor only (GMRES)", default, 5.0, dict(rest_only=True)),
+        ("64x80x2, 0.5 N: Woodbury (chosen)", big, 0.5, {}),
+        ("64x80x2, 0.5 N: assembled tangent instead", big, 0.5, dict(max_lowrank_dofs=-1)),
+    ]
+    if cholmod_available():
+        choices += [("64x80x2, 0.5 N: rest factor by SuperLU", big, 0.5, dict(backend="superlu")),
+                    ("default, 0.5 N linear: CHOLMOD", default, 0.5, dict(law="linear")),
+                    ("default, 0.5 N linear: SuperLU", default, 0.5, dict(law="linear", backend="superlu"))]
+    for label, mesh, load, options in choices:
+        options = dict(options)
+        model = TissueModel(mesh, TissueParameters(law=options.pop("law", "etmm"), viscosity=VISCOSITY))
+        if options.pop("rest_only", False):
+            model.integrator.preconditioner.max_lowrank_dofs = 10**9
+            model.integrator.preconditioner.update = lambda h, pc=model.integrator.preconditioner: (
+                pc._set_step(h) if h != pc._h else None, setattr(pc, "mode", "rest"))
+        if "extrapolate" in options:
+            model.integrator.extrapolate = options.pop("extrapolate")
+        if "backend" in options:
+            model.integrator.preconditioner = TangentFactorization(model.force_field, model.masses, model.fixed,
+                                                                   backend=options.pop("backend"))
+        for key, value in options.items():
+            setattr(model.integrator.preconditioner, key, value)
+        print(line(label, run(model, load, steps)))
+
+    # 4. compliance cost
+    print("\n4. compliance block (default wall, etmm) relative to one step: first call for a patch (its"
+          "\n   columns solved), and again for the same patch (cached columns; what a per-step caller pays)")
+    for load in (0.5, 5.0):
+        model = TissueModel(default, TissueParameters(law="etmm", viscosity=VISCOSITY))
+        r = run(model, load, steps)
+        d = np.linalg.norm(model.surface_positions() - np.asarray(CONTACT_POINT), axis=1)
+        order = np.argsort(d)
+        for p in (4, 8, 12, 16):
+            fresh = copy.deepcopy(model)
+            t0 = time.perf_counter()
+            fresh.compliance(order[:p])
+            first = 1000.0 * (time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            for _ in range(3):
+                fresh.compliance(order[:p])
+            again = 1000.0 * (time.perf_counter() - t0) / 3
+            print(f"  {load:3.1f} N, p = {p:2d} ({3 * p:2d} columns, mode {fresh.integrator.preconditioner.mode:7s}): "
+                  f"first {first:7.1f} ms = {first / r['median']:5.2f} x the step, again {again:6.2f} ms = "
+                  f"{again / r['median']:5.3f} x the step ({r['median']:.1f} ms)")
 
 
 if __name__ == "__main__":

@@ -2,8 +2,9 @@
 
 Units SI (m, kg, s, N, Pa); node arrays are (n, 3) float64, flat vectors node-major
 (x0, y0, z0, x1, ...).  Layers: ``mesh`` (TetMesh, generators, I/O), ``forcefield`` with
-``precompute``/``materials``/``kernels`` (tensor-mass forces, numba), ``integrators`` (ODE and
-linear solvers, matrix-free), ``model`` (state and ``step(t, dt)``, validation), and the FMU
+``laws``/``precompute``/``materials``/``kernels`` (tensor-mass forces, numba), ``integrators``
+(ODE solvers), ``solvers`` (Krylov), ``factorization`` (the implicit step's factorised
+preconditioner), ``errors``, ``model`` (state and ``step(t, dt)``, validation), and the FMU
 declaration ``fmu`` (not imported here: only the FMU build and runtime need it).
 
 Python API
@@ -34,12 +35,16 @@ Model
     ``solver_iterations``, ``solver_residual``, ``solver_converged``, ``substeps``,
     ``critical_time_step``, ``time``.
 Errors
-    :class:`TissueError` (a ValueError) for bad input or a failed step, :class:`StabilityError`
-    when an explicit step exceeds the critical time step, :class:`MeshError` for bad meshes.
+    :class:`TissueError` (a ValueError), the one base class of the package's errors, for bad input
+    or a failed step; its subclasses :class:`StabilityError` (an explicit step exceeds the critical
+    time step), :class:`MeshError` (bad meshes), :class:`MaterialError`, :class:`ForceFieldError`.
 Building blocks
-    :class:`TensorMassForceField`, ``assemble_stiffness``; integrators :class:`SymplecticEuler`
-    (explicit, substeps) and :class:`BackwardEuler` (implicit, CG/BiCGSTAB with
-    :class:`JacobiPreconditioner` or :class:`FactorizedPreconditioner`).
+    :class:`TensorMassForceField` with one class per material law (``laws``: :class:`LinearLaw`,
+    :class:`ETMMLaw`, :class:`HyperelasticLaw`), ``assemble_stiffness`` (any vertex order);
+    integrators :class:`SymplecticEuler` (explicit, substeps) and :class:`BackwardEuler` (implicit;
+    Krylov solvers in ``solvers``) with :class:`TangentFactorization` (the default: the step
+    matrix factorised and kept exact, ``factorization``), :class:`FactorizedPreconditioner` (rest
+    matrix only) or :class:`JacobiPreconditioner`.
 
 Example
 -------
@@ -56,19 +61,19 @@ Example
 (True, True)
 """
 
-from .forcefield import ForceFieldError, TensorMassForceField, assemble_stiffness, lame_parameters
+from .errors import ForceFieldError, MaterialError, MeshError, StabilityError, TissueError
+from .factorization import TangentFactorization
+from .forcefield import TensorMassForceField, assemble_stiffness, lame_parameters
 from .integrators import (
     BackwardEuler,
     FactorizedPreconditioner,
     JacobiPreconditioner,
-    StabilityError,
     StepStatistics,
     SymplecticEuler,
-    TissueError,
-    preconditioned_bicgstab,
-    preconditioned_cg,
 )
-from .mesh import MeshError, TetMesh, aaa_mesh, box_mesh, load_mesh, save_mesh, validate_mesh
+from .laws import ETMMLaw, HyperelasticLaw, LinearLaw, MaterialLaw
+from .mesh import TetMesh, aaa_mesh, box_mesh, load_mesh, save_mesh, validate_mesh
+from .solvers import preconditioned_bicgstab, preconditioned_cg, preconditioned_gmres
 from .model import TissueModel, TissueParameters
 
 __all__ = [
@@ -85,6 +90,13 @@ __all__ = [
     "validate_mesh",
     "TensorMassForceField",
     "ForceFieldError",
+    "MaterialError",
+    "MaterialLaw",
+    "LinearLaw",
+    "ETMMLaw",
+    "HyperelasticLaw",
+    "TangentFactorization",
+    "preconditioned_gmres",
     "assemble_stiffness",
     "lame_parameters",
     "SymplecticEuler",

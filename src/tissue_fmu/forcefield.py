@@ -26,19 +26,17 @@ import logging
 import numpy as np
 
 from . import kernels
+from .errors import ForceFieldError, MaterialError
+from .laws import make_law
 from .materials import (
     LAWS,
-    MaterialError,
     element_array,
     lame_parameters,
-    rv_stiffening_ratio,
     viscous_lame_parameters,
 )
 from .precompute import (
     TensorMassTensors,
     assemble_stiffness,
-    edge_element_adjacency,
-    edge_screen_limits,
     lumped_masses,
     shape_gradients,
     tensor_mass_tensors,
@@ -53,14 +51,6 @@ __all__ = ["ForceFieldError", "TensorMassForceField", "lame_parameters", "assemb
 # Explicit-step stiffening margin for non-linear laws: the time step stays a bound while every
 # element's principal Green strains stay within +-STIFFENING_REFERENCE_STRAIN.
 STIFFENING_REFERENCE_STRAIN = 0.1
-
-# ETMM: above this fraction of candidate (non-linear-capable) tets, candidates are pre-screened
-# by edge strains fused into the linear pass instead of checking every candidate tet.
-SCREEN_MIN_CANDIDATE_FRACTION = 0.3
-
-
-class ForceFieldError(ValueError):
-    """Invalid force-field input (shape, law, mask); the message names the problem and the fix."""
 
 
 def _check_node_array(name: str, x, n: int) -> np.ndarray:
@@ -137,7 +127,6 @@ class TensorMassForceField:
         self.rv_alpha = float(rv_alpha)
         self.rv_beta = float(rv_beta)
         self.nonlinear_strain_threshold = float(t)
-        self.nonlinear_fraction = 0.0
         self.active_elements = active
         act = np.flatnonzero(active)
         self._element_ids = act
@@ -161,41 +150,32 @@ class TensorMassForceField:
                 self._damping = tensor_mass_tensors(points, self._tets, lam_v[act], mu_v[act],
                                                     self._grads, self._volumes)
         m_a = act.size
+        self._points = np.ascontiguousarray(points)
         self._candidates = np.flatnonzero(nonlinear[act]).astype(np.int64)
-        self._phi = np.zeros(m_a)
-        self._nonlinear_ids = np.zeros(m_a, dtype=np.int64)
-        self._nonlinear_count = 0
         self._u_last = np.zeros((n, 3))
-        # ETMM screen: edges whose Green strain could mean an element over the threshold are
-        # flagged during the linear pass; only the tets around them are examined exactly.
-        # Measured (benchmarks/bench_tissue_kernels.py): the fused edge screen costs ~40 % of a linear
-        # pass, checking a tet directly ~4 % of a linear pass per 1 % of tets, so the screen pays
-        # only when most tets are candidates.
-        self._screened = (law == "etmm" and self.nonlinear_strain_threshold > 0.0
-                          and self._candidates.size > SCREEN_MIN_CANDIDATE_FRACTION * m_a)
-        if self._screened:
-            k = self.stiffness
-            self._edge_screen = edge_screen_limits(points, self._tets, k.edges, k.element_edges,
-                                                  self.nonlinear_strain_threshold)
-            self._edge_elem_ptr, self._edge_elem_ids = edge_element_adjacency(k.element_edges, k.edges.shape[0])
-            self._candidate_mask = np.zeros(m_a, dtype=np.uint8)
-            self._candidate_mask[self._candidates] = 1
-            self._stamp = np.zeros(m_a, dtype=np.int64)
-            self._stamp_value = 0
-            self._flagged = np.empty(k.edges.shape[0], dtype=np.int64)
-            self._examined = np.empty(m_a, dtype=np.int64)
-        self.screened_fraction = 0.0  # fraction of active tets examined exactly at the last add_forces
         self._work = np.empty((n, 3))
-        # Hyperelastic per-element constants (small-strain moduli = the element's lam, mu).
-        self._hyper_alpha = 0.5 * self._mu
-        self._hyper_beta = self._hyper_alpha * self._beta_over_alpha
-        self._hyper_kappa = self._lam + (2.0 / 3.0) * self._mu
+        self.screened_fraction = 0.0  # fraction of active tets examined exactly at the last add_forces
+        self._law = make_law(law, self)
         logger.info("tensor-mass force field: %d nodes, %d active tets, %d edges, law=%s",
                     n, m_a, self.stiffness.edges.shape[0], law)
 
     # ------------------------------------------------------------------------------------------
     # forces and tangents
     # ------------------------------------------------------------------------------------------
+    @property
+    def material_law(self):
+        """The law object (:mod:`tissue_fmu.laws`) behind this force field."""
+        return self._law
+
+    @property
+    def nonlinear_fraction(self) -> float:
+        """Fraction of active tets the non-linear correction acted on at the last add_forces."""
+        return self._law.nonlinear_fraction
+
+    @property
+    def _screened(self) -> bool:
+        return bool(getattr(self._law, "screened", False))
+
     def add_forces(self, u, v, out) -> None:
         """out += elastic(u) + viscous(v); u = x - x0, v velocity, all (n, 3) float64."""
         n = self.n_nodes
@@ -203,44 +183,8 @@ class TensorMassForceField:
         _check_node_array("out", out, n)
         if v is not None:
             _check_node_array("v", v, n)
-        k = self.stiffness
-        fused_damping = self._tau > 0.0 and v is not None
-        if self.law == "hyperelastic":
-            kernels.hyperelastic_forces(self._tets, self._grads, self._volumes, self._hyper_alpha,
-                                        self._hyper_beta, self._hyper_kappa, u, out)
-            np.copyto(self._u_last, u)
-            if fused_damping:
-                kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, v, -self._tau, out)
-        elif self.law == "etmm":
-            self._phi[self._nonlinear_ids[: self._nonlinear_count]] = 0.0  # forget the last state
-            if self._screened:
-                n_flagged = kernels.tensor_mass_force_screened(k.vertex, k.edges, k.edge_tensors,
-                                                               self._edge_screen, u, out, self._flagged)
-                self._stamp_value += 1
-                n_examined = kernels.elements_of_flagged_edges(self._flagged, n_flagged, self._edge_elem_ptr,
-                                                               self._edge_elem_ids, self._candidate_mask,
-                                                               self._stamp, self._stamp_value, self._examined)
-                examined = self._examined[:n_examined]
-            else:
-                kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, u, -1.0, out)
-                examined = self._candidates
-            self._nonlinear_count = kernels.etmm_correction(
-                self._tets, self._grads, self._volumes, self._lam, self._mu, examined, u,
-                self.nonlinear_strain_threshold, self._beta_over_alpha, self._phi, self._nonlinear_ids, out)
-            m_a = self._tets.shape[0]
-            self.nonlinear_fraction = self._nonlinear_count / m_a
-            self.screened_fraction = examined.shape[0] / m_a
-            np.copyto(self._u_last, u)
-            if fused_damping:
-                kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, v, -self._tau, out)
-        else:
-            if fused_damping:
-                w = self._work
-                np.multiply(v, self._tau, out=w)
-                w += u
-                kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, w, -1.0, out)
-            else:
-                kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, u, -1.0, out)
+        self._law.add_forces(u, v, out)
+        np.copyto(self._u_last, u)
         if self._damping is not None and v is not None:
             c = self._damping
             kernels.tensor_mass_matvec(c.vertex, c.edges, c.edge_tensors, v, -1.0, out)
@@ -250,30 +194,55 @@ class TensorMassForceField:
         _check_node_array("du", du, self.n_nodes)
         _check_node_array("out", out, self.n_nodes)
         out.fill(0.0)
-        if self.law == "hyperelastic":
-            kernels.hyperelastic_tangent_matvec(self._tets, self._grads, self._volumes, self._hyper_alpha,
-                                                self._hyper_beta, self._hyper_kappa, self._u_last, du, 1.0, out)
-            return
-        k = self.stiffness
-        kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, du, 1.0, out)
-        if self.law == "etmm" and self._nonlinear_count:
-            kernels.scaled_elements_matvec(self._tets, self._grads, self._volumes, self._lam, self._mu,
-                                           self._nonlinear_ids, self._nonlinear_count, self._phi, du, 1.0, out)
+        self._law.tangent_matvec(du, out)
 
     def consistent_tangent_matvec(self, du, out) -> None:
         """out = d(-f)/du . du exactly at the last state (etmm: includes the change of dlam, dmu;
-        not symmetric, so the CG solver uses :meth:`tangent_matvec`)."""
-        if self.law != "etmm":
-            self.tangent_matvec(du, out)
-            return
+        not symmetric, so the CG solver uses :meth:`tangent_matvec`).  ETMM touches only the
+        elements above the strain threshold (the others have no correction and no derivative)."""
         _check_node_array("du", du, self.n_nodes)
         _check_node_array("out", out, self.n_nodes)
         out.fill(0.0)
+        self._law.consistent_tangent_matvec(du, out)
+
+    def system_matvec(self, du, k_scale: float, c_scale: float, out, consistent: bool = False) -> None:
+        """out = k_scale K_t du + c_scale C du in one pass over the rest tensors where possible
+        (uniform Kelvin-Voigt damping C = tau K_0 folds into the rest stiffness product)."""
+        law = self._law
+        if not law.splits_rest_stiffness:
+            (self.consistent_tangent_matvec if consistent else self.tangent_matvec)(du, out)
+            out *= k_scale
+            if c_scale != 0.0 and self.has_damping:
+                tmp = self._work
+                self.damping_matvec(du, tmp)
+                tmp *= c_scale
+                out += tmp
+            return
+        out.fill(0.0)
         k = self.stiffness
-        kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, du, 1.0, out)
-        kernels.etmm_consistent_tangent(self._tets, self._grads, self._volumes, self._lam, self._mu,
-                                        self._candidates, self._u_last, du, self.nonlinear_strain_threshold,
-                                        self._beta_over_alpha, out)
+        rest_scale = k_scale + (c_scale * self._tau if self._damping is None else 0.0)
+        kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, du, rest_scale, out)
+        law.add_tangent_correction(du, k_scale, out, consistent)
+        if self._damping is not None and c_scale != 0.0:
+            c = self._damping
+            kernels.tensor_mass_matvec(c.vertex, c.edges, c.edge_tensors, du, c_scale, out)
+
+    def tangent_blocks(self):
+        """(active element ids (k,), blocks (k, 4, 4, 3, 3)): the consistent tangent minus the rest
+        stiffness at the last add_forces state, per element and local vertex pair, or None when
+        the law does not assemble it (hyperelastic).  ``blocks[c, j, k]`` couples local vertex j
+        (row) to k (column) of active element ``ids[c]`` (rows of :attr:`active_tets`)."""
+        return self._law.tangent_blocks()
+
+    def nonlinear_element_ids(self):
+        """Active element ids (rows of :attr:`active_tets`) whose tangent differs from the rest
+        stiffness at the last add_forces state; None when every element does (hyperelastic)."""
+        return self._law.nonlinear_element_ids()
+
+    @property
+    def active_tets(self) -> np.ndarray:
+        """(m_active, 4) the active tets, in the order tangent_blocks numbers them."""
+        return self._tets
 
     def damping_matvec(self, dv, out) -> None:
         """out = C dv (zero if viscosity is 0)."""
@@ -294,11 +263,7 @@ class TensorMassForceField:
 
     def stiffness_diagonal(self) -> np.ndarray:
         """(n, 3) diagonal of K_t (hyperelastic: of the rest stiffness; fine for Jacobi)."""
-        diag = np.ascontiguousarray(np.diagonal(self.stiffness.vertex, axis1=1, axis2=2))
-        if self.law == "etmm" and self._nonlinear_count:
-            kernels.scaled_elements_diagonal(self._tets, self._grads, self._volumes, self._lam, self._mu,
-                                             self._nonlinear_ids, self._nonlinear_count, self._phi, diag)
-        return diag
+        return self._law.stiffness_diagonal()
 
     def stiffness_matrix(self):
         """Rest (linear) stiffness as scipy CSR (3n x 3n)."""
@@ -311,22 +276,7 @@ class TensorMassForceField:
         """Elastic energy: linear 1/2 u.Ku; etmm the secant energy 1/2 sum (1+phi_T) u_T.K_T u_T;
         hyperelastic sum V W(F)."""
         _check_node_array("u", u, self.n_nodes)
-        if self.law == "hyperelastic":
-            return float(kernels.hyperelastic_energy(self._tets, self._grads, self._volumes, self._hyper_alpha,
-                                                     self._hyper_beta, self._hyper_kappa, u))
-        k = self.stiffness
-        ku = np.zeros_like(u)
-        kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, u, 1.0, ku)
-        energy = 0.5 * float(np.einsum("ij,ij->", u, ku))
-        if self.law == "etmm":
-            phi = np.zeros_like(self._phi)
-            ids = np.zeros_like(self._nonlinear_ids)
-            count = kernels.etmm_correction(self._tets, self._grads, self._volumes, self._lam, self._mu,
-                                            self._candidates, u, self.nonlinear_strain_threshold,
-                                            self._beta_over_alpha, phi, ids, ku)
-            energy += float(kernels.scaled_elements_energy(self._tets, self._grads, self._volumes, self._lam,
-                                                           self._mu, ids, count, phi, u))
-        return energy
+        return self._law.strain_energy(u)
 
     def element_max_strain(self, u) -> np.ndarray:
         """(m_active,) largest principal Green strain magnitude per active element."""
@@ -337,7 +287,8 @@ class TensorMassForceField:
 
     def max_strain(self, u) -> float:
         """Max principal Green strain magnitude over the active elements."""
-        return float(self.element_max_strain(u).max())
+        _check_node_array("u", u, self.n_nodes)
+        return float(kernels.max_green_strain(self._tets, self._grads, u))
 
     def lumped_masses(self, density) -> np.ndarray:
         """(n,) lumped masses from the ACTIVE elements (nodes of inactive elements only: 0)."""
@@ -351,17 +302,7 @@ class TensorMassForceField:
         """Upper bound of the tangent-stiffness growth factor for principal Green strains within
         +-strain (1 for the linear law): max over the uniaxial Raghavan-Vorp response of
         dP/dl / E = r + (l - 1) dr/dl, and the current secant factors 1 + phi."""
-        if self.law == "linear":
-            return 1.0
-        green = np.linspace(-strain, strain, 401)
-        stretch = np.sqrt(1.0 + 2.0 * green)
-        r = rv_stiffening_ratio(green, self._beta_over_alpha)
-        nominal = r * (stretch - 1.0)
-        tangent = np.gradient(nominal, stretch)
-        margin = max(float(tangent.max()), float(r.max()), 1.0)
-        if self.law == "etmm" and self._nonlinear_count:
-            margin = max(margin, 1.0 + float(self._phi.max()))
-        return margin
+        return self._law.stiffening_margin(strain)
 
     def critical_time_step(self, masses) -> float:
         """Largest stable step of explicit symplectic Euler, a SAFE (lower) estimate.

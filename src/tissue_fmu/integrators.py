@@ -26,9 +26,20 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
+
+from .errors import StabilityError, TissueError
+from .solvers import (  # noqa: F401  (re-exported: the Krylov solvers used to live here)
+    BiCGStabWorkspace,
+    CGWorkspace,
+    GMRESWorkspace,
+    preconditioned_bicgstab,
+    preconditioned_cg,
+    preconditioned_gmres,
+)
+from .solvers import _masked_dot, _true_residual
 
 logger = logging.getLogger(__name__)
 
@@ -54,14 +65,6 @@ __all__ = [
 AUTO_SUBSTEP_SAFETY = 0.9
 
 
-class TissueError(ValueError):
-    """Invalid tissue input or a failed tissue step; the message names the problem and the fix."""
-
-
-class StabilityError(TissueError):
-    """The explicit step is larger than its critical time step."""
-
-
 class ForceField(Protocol):
     """What an integrator needs from a force field (see tissue_fmu.forcefield)."""
 
@@ -85,308 +88,8 @@ class StepStatistics:
 
 
 # --------------------------------------------------------------------------------------
-# Linear solver
+# Preconditioners (the Krylov solvers are in solvers.py)
 # --------------------------------------------------------------------------------------
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """Dot product of two (n, 3) arrays without BLAS.
-
-    np.vdot / np.dot go to a multi-threaded BLAS, whose threads spin-wait for cores that other
-    processes hold: measured here 8 ms per dot on a busy 2-core machine against 6-25 us for
-    einsum.  CG does three per iteration, so this keeps the step time predictable.
-    """
-    return float(np.einsum("ij,ij->", a, b))
-
-
-def _masked_dot(a: np.ndarray, b: np.ndarray, free: np.ndarray) -> float:
-    return float(np.einsum("ij,ij,ij->", a, b, free))
-
-
-def _true_residual(apply_matrix, b: np.ndarray, x: np.ndarray, free: np.ndarray, r: np.ndarray,
-                   scratch: np.ndarray) -> float:
-    """r = free * (b - A x); returns ||r||."""
-    apply_matrix(x, scratch)
-    np.subtract(b, scratch, out=r)
-    np.multiply(r, free, out=r)
-    return math.sqrt(_dot(r, r))
-
-
-class CGWorkspace:
-    """Preallocated vectors for :func:`preconditioned_cg` on an (n, 3) unknown."""
-
-    def __init__(self, n_nodes: int):
-        shape = (n_nodes, 3)
-        self.r = np.zeros(shape)  # residual b - A x
-        self.z = np.zeros(shape)  # preconditioned residual
-        self.p = np.zeros(shape)  # search direction
-        self.q = np.zeros(shape)  # A p
-        self.t = np.zeros(shape)  # scratch for axpy updates
-
-
-def preconditioned_cg(
-    apply_matrix: Callable[[np.ndarray, np.ndarray], None],
-    b: np.ndarray,
-    x: np.ndarray,
-    precondition: Callable[[np.ndarray, np.ndarray], None],
-    free: np.ndarray,
-    tolerance: float,
-    max_iterations: int,
-    work: CGWorkspace,
-) -> tuple[int, float, bool]:
-    """Solve a symmetric positive definite ``A x = b`` on the free dofs by preconditioned CG.
-
-    ``apply_matrix(p, out)`` writes ``A p`` into ``out``; ``precondition(r, out)`` writes an
-    approximation of ``A^-1 r`` (symmetric positive definite, zero on fixed dofs).  ``x`` holds
-    the initial guess (warm start) and is overwritten with the solution.  ``free`` is an (n, 3) array of 1.0 on free and
-    0.0 on fixed dofs: residuals and search directions are multiplied by it (the Baraff-Witkin
-    filter), so fixed dofs keep ``x = 0`` and the iteration is plain PCG on the free subspace.
-    Stops when the TRUE residual ``||b - A x|| <= tolerance ||b||`` (2-norms, unpreconditioned,
-    over the free dofs).
-
-    Returns (iterations, relative residual, converged).  Does not raise on non-convergence:
-    the caller decides what to do with an inexact answer.
-    """
-    r, z, p, q, t = work.r, work.z, work.p, work.q, work.t
-    np.multiply(x, free, out=x)
-    b_norm = math.sqrt(_masked_dot(b, b, free))
-    if b_norm == 0.0:
-        x.fill(0.0)
-        return 0, 0.0, True
-    target = tolerance * b_norm
-    iterations = 0
-    while True:
-        # The recurrence residual drifts from b - A x in round-off: convergence is only
-        # declared on the true residual, and a drifted iteration restarts from it.
-        r_norm = _true_residual(apply_matrix, b, x, free, r, q)
-        if r_norm <= target:
-            return iterations, r_norm / b_norm, True
-        if iterations >= max_iterations or not math.isfinite(r_norm):
-            return iterations, r_norm / b_norm, False
-        precondition(r, z)
-        np.copyto(p, z)
-        rz = _dot(r, z)
-        while iterations < max_iterations:
-            apply_matrix(p, q)
-            np.multiply(q, free, out=q)
-            p_q = _dot(p, q)
-            if not p_q > 0.0:
-                # A is not positive definite along p (an indefinite non-linear tangent) or p is
-                # NaN: CG cannot continue, return what we have.
-                logger.warning("conjugate gradients broke down: p^T A p = %g after %d iterations",
-                               p_q, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, q)
-                return iterations, r_norm / b_norm, False
-            alpha = rz / p_q
-            np.multiply(p, alpha, out=t)
-            np.add(x, t, out=x)
-            np.multiply(q, alpha, out=t)
-            np.subtract(r, t, out=r)
-            iterations += 1
-            if math.sqrt(_dot(r, r)) <= target:
-                break
-            precondition(r, z)
-            rz_new = _dot(r, z)
-            beta = rz_new / rz
-            rz = rz_new
-            np.multiply(p, beta, out=p)
-            np.add(p, z, out=p)
-
-
-class BiCGStabWorkspace:
-    """Preallocated vectors for :func:`preconditioned_bicgstab` on an (n, 3) unknown."""
-
-    def __init__(self, n_nodes: int):
-        shape = (n_nodes, 3)
-        self.r = np.zeros(shape)
-        self.r_hat = np.zeros(shape)
-        self.p = np.zeros(shape)
-        self.v = np.zeros(shape)
-        self.y = np.zeros(shape)
-        self.s = np.zeros(shape)
-        self.z = np.zeros(shape)
-        self.t = np.zeros(shape)
-        self.tmp = np.zeros(shape)
-
-
-def preconditioned_bicgstab(
-    apply_matrix: Callable[[np.ndarray, np.ndarray], None],
-    b: np.ndarray,
-    x: np.ndarray,
-    precondition: Callable[[np.ndarray, np.ndarray], None],
-    free: np.ndarray,
-    tolerance: float,
-    max_iterations: int,
-    work: BiCGStabWorkspace,
-) -> tuple[int, float, bool]:
-    """Solve a NON-symmetric ``A x = b`` on the free dofs by preconditioned BiCGSTAB (van der Vorst).
-
-    Same contract as :func:`preconditioned_cg` (warm start in ``x``, ``free`` filter, stop at
-    ``||b - A x|| <= tolerance ||b||``, returns (iterations, relative residual, converged)).
-    Needed for the consistent ETMM tangent, which is not symmetric.
-    """
-    r, r_hat, p, v, y, s, z, t, tmp = (work.r, work.r_hat, work.p, work.v, work.y, work.s, work.z,
-                                        work.t, work.tmp)
-    np.multiply(x, free, out=x)
-    b_norm = math.sqrt(_masked_dot(b, b, free))
-    if b_norm == 0.0:
-        x.fill(0.0)
-        return 0, 0.0, True
-    target = tolerance * b_norm
-    iterations = 0
-    while True:
-        # Convergence only on the true residual; a drifted recurrence restarts from it.
-        r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-        if r_norm <= target:
-            return iterations, r_norm / b_norm, True
-        if iterations >= max_iterations or not math.isfinite(r_norm):
-            return iterations, r_norm / b_norm, False
-        np.copyto(r_hat, r)
-        p.fill(0.0)
-        v.fill(0.0)
-        rho = alpha = omega = 1.0
-        while iterations < max_iterations:
-            rho_new = _dot(r_hat, r)
-            if rho_new == 0.0 or omega == 0.0 or not math.isfinite(rho_new):
-                logger.warning("BiCGSTAB broke down (rho = %g, omega = %g) after %d iterations",
-                               rho_new, omega, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-                return iterations, r_norm / b_norm, False
-            beta = (rho_new / rho) * (alpha / omega)
-            rho = rho_new
-            # p = r + beta (p - omega v)
-            np.multiply(v, omega, out=tmp)
-            np.subtract(p, tmp, out=p)
-            np.multiply(p, beta, out=p)
-            np.add(p, r, out=p)
-            precondition(p, y)
-            apply_matrix(y, v)
-            np.multiply(v, free, out=v)
-            r_hat_v = _dot(r_hat, v)
-            if r_hat_v == 0.0 or not math.isfinite(r_hat_v):
-                logger.warning("BiCGSTAB broke down (r_hat . v = %g) after %d iterations", r_hat_v, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-                return iterations, r_norm / b_norm, False
-            alpha = rho / r_hat_v
-            # half step: s = r - alpha v, x += alpha y
-            np.multiply(v, alpha, out=tmp)
-            np.subtract(r, tmp, out=s)
-            np.multiply(y, alpha, out=tmp)
-            np.add(x, tmp, out=x)
-            iterations += 1
-            if math.sqrt(_dot(s, s)) <= target:
-                break
-            precondition(s, z)
-            apply_matrix(z, t)
-            np.multiply(t, free, out=t)
-            t_t = _dot(t, t)
-            if t_t == 0.0 or not math.isfinite(t_t):
-                logger.warning("BiCGSTAB broke down (t . t = %g) after %d iterations", t_t, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-                return iterations, r_norm / b_norm, False
-            omega = _dot(t, s) / t_t
-            # x += omega z;  r = s - omega t
-            np.multiply(z, omega, out=tmp)
-            np.add(x, tmp, out=x)
-            np.multiply(t, omega, out=tmp)
-            np.subtract(s, tmp, out=r)
-            if math.sqrt(_dot(r, r)) <= target:
-                break
-
-
-class GMRESWorkspace:
-    """Preallocated Krylov basis for :func:`preconditioned_gmres` (restart length ``restart``)."""
-
-    def __init__(self, n_nodes: int, restart: int = 30):
-        self.restart = restart
-        self.V = np.zeros((restart + 1, n_nodes, 3))  # orthonormal Arnoldi basis
-        self.Z = np.zeros((restart, n_nodes, 3))  # preconditioned basis: x = x0 + Z y
-        self.w = np.zeros((n_nodes, 3))
-        self.r = np.zeros((n_nodes, 3))
-        self.tmp = np.zeros((n_nodes, 3))
-        self.H = np.zeros((restart + 1, restart))
-        self.g = np.zeros(restart + 1)
-        self.cs = np.zeros(restart)
-        self.sn = np.zeros(restart)
-
-
-def preconditioned_gmres(
-    apply_matrix: Callable[[np.ndarray, np.ndarray], None],
-    b: np.ndarray,
-    x: np.ndarray,
-    precondition: Callable[[np.ndarray, np.ndarray], None],
-    free: np.ndarray,
-    tolerance: float,
-    max_iterations: int,
-    work: GMRESWorkspace,
-) -> tuple[int, float, bool]:
-    """Solve a NON-symmetric ``A x = b`` on the free dofs by right-preconditioned (flexible) GMRES.
-
-    Same contract as :func:`preconditioned_cg`.  One preconditioner application and one
-    matrix product per iteration (BiCGSTAB needs two of each), and the minimised residual is the
-    true one; restarted every ``work.restart`` iterations.  Needed for the consistent ETMM
-    tangent, which is not symmetric.
-    """
-    V, Z, w, r, tmp, H, g, cs, sn = (work.V, work.Z, work.w, work.r, work.tmp, work.H, work.g,
-                                     work.cs, work.sn)
-    restart = work.restart
-    np.multiply(x, free, out=x)
-    b_norm = math.sqrt(_masked_dot(b, b, free))
-    if b_norm == 0.0:
-        x.fill(0.0)
-        return 0, 0.0, True
-    target = tolerance * b_norm
-    iterations = 0
-    while True:
-        beta = _true_residual(apply_matrix, b, x, free, r, tmp)
-        if beta <= target:
-            return iterations, beta / b_norm, True
-        if iterations >= max_iterations or not math.isfinite(beta):
-            return iterations, beta / b_norm, False
-        np.multiply(r, 1.0 / beta, out=V[0])
-        H.fill(0.0)
-        g.fill(0.0)
-        g[0] = beta
-        k = 0
-        for j in range(restart):
-            precondition(V[j], Z[j])
-            apply_matrix(Z[j], w)
-            np.multiply(w, free, out=w)
-            for i in range(j + 1):  # modified Gram-Schmidt
-                H[i, j] = _dot(w, V[i])
-                np.multiply(V[i], H[i, j], out=tmp)
-                np.subtract(w, tmp, out=w)
-            h_next = math.sqrt(_dot(w, w))
-            H[j + 1, j] = h_next
-            if h_next > 0.0:
-                np.multiply(w, 1.0 / h_next, out=V[j + 1])
-            for i in range(j):  # previous Givens rotations
-                hij = cs[i] * H[i, j] + sn[i] * H[i + 1, j]
-                H[i + 1, j] = -sn[i] * H[i, j] + cs[i] * H[i + 1, j]
-                H[i, j] = hij
-            denominator = math.hypot(H[j, j], H[j + 1, j])
-            if denominator == 0.0 or not math.isfinite(denominator):
-                logger.warning("GMRES broke down after %d iterations", iterations)
-                break
-            cs[j] = H[j, j] / denominator
-            sn[j] = H[j + 1, j] / denominator
-            H[j, j] = denominator
-            H[j + 1, j] = 0.0
-            g[j + 1] = -sn[j] * g[j]
-            g[j] = cs[j] * g[j]
-            iterations += 1
-            k = j + 1
-            if abs(g[j + 1]) <= target or iterations >= max_iterations or h_next == 0.0:
-                break
-        if k == 0:
-            return iterations, beta / b_norm, False
-        # x += Z y with H[:k, :k] y = g[:k] (upper triangular after the rotations)
-        y = np.zeros(k)
-        for i in range(k - 1, -1, -1):
-            y[i] = (g[i] - H[i, i + 1:k] @ y[i + 1:k]) / H[i, i]
-        for i in range(k):
-            np.multiply(Z[i], y[i], out=tmp)
-            np.add(x, tmp, out=x)
 
 
 class JacobiPreconditioner:
@@ -439,6 +142,17 @@ class FactorizedPreconditioner:
         self._rhs = np.zeros(free.size)
         self._h = None
         self._lu = None
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_lu"] = None  # SuperLU cannot be pickled: refactorised (bit for bit) on load
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if self._h is not None:
+            h, self._h = self._h, None
+            self.update(h)
 
     def update(self, h: float) -> None:
         if h == self._h:
@@ -561,8 +275,10 @@ class BackwardEuler:
         v += dv;   u += h v
 
     For the linear law this is exactly backward Euler.  The system is solved matrix-free,
-    warm started from the previous ``dv``, with :class:`JacobiPreconditioner` (default) or
-    :class:`FactorizedPreconditioner` (needed for thin walls at 30 Hz, where Jacobi-CG takes
+    warm started from the previous ``dv`` extrapolated linearly from the one before, with
+    :class:`JacobiPreconditioner` (default), :class:`FactorizedPreconditioner` (the rest matrix) or
+    :class:`~tissue_fmu.factorization.TangentFactorization` (the model's choice: the step matrix
+    kept exact; needed for thin walls at 30 Hz, where Jacobi-CG takes
     thousands of iterations).
 
     Tangent: ``K_t`` is the force field's symmetric ``tangent_matvec`` (linear: K; ETMM: the
@@ -606,6 +322,11 @@ class BackwardEuler:
         # stays finite where a frozen node has no mass.
         self.mass = np.repeat(np.where(masses > 0.0, masses, 1.0)[:, None], 3, axis=1)
         self.dv = np.zeros((n, 3))  # previous solution: the warm start of the next solve
+        self._dv_prev = np.zeros((n, 3))
+        self._direct_r = np.zeros((n, 3))
+        # Initial guess of each solve: the last solution extrapolated linearly from the one before
+        # (measured on the default AAA under 5 N: steady steps need 1 GMRES iteration instead of 2).
+        self.extrapolate = True
         self._b = np.zeros((n, 3))
         self._tmp = np.zeros((n, 3))
         self._apply_tmp = np.zeros((n, 3))
@@ -618,6 +339,7 @@ class BackwardEuler:
         self.nonsymmetric_solver = nonsymmetric_solver
         self._nonsymmetric_work = None
         self._tangent = force_field.tangent_matvec
+        self._consistent = False
         self._h = 0.0
         self.last_solver = "cg"
 
@@ -625,14 +347,32 @@ class BackwardEuler:
         """out = (M + h C + h^2 K_t) p."""
         h = self._h
         tmp = self._apply_tmp
-        self._tangent(p, out)
-        out *= h * h
-        if self.viscous:
-            self.force_field.damping_matvec(p, tmp)
-            tmp *= h
-            out += tmp
+        system = getattr(self.force_field, "system_matvec", None)
+        if system is not None:
+            system(p, h * h, h if self.viscous else 0.0, out, self._consistent)
+        else:
+            self._tangent(p, out)
+            out *= h * h
+            if self.viscous:
+                self.force_field.damping_matvec(p, tmp)
+                tmp *= h
+                out += tmp
         np.multiply(self.mass, p, out=tmp)
         out += tmp
+
+    def _direct_solve(self, b: np.ndarray):
+        """When the preconditioner IS the step matrix (to round-off): dv = P^-1 b, accepted on the
+        true residual (one iteration's worth, without the Krylov bookkeeping: two system products
+        fewer than a 1-iteration CG/GMRES); None lets the Krylov solver continue from dv."""
+        free = self.free
+        b_norm = math.sqrt(_masked_dot(b, b, free))
+        self.preconditioner(b, self.dv)
+        if b_norm == 0.0:
+            return 0, 0.0, True
+        r_norm = _true_residual(self._apply_system, b, self.dv, free, self._direct_r, self._tmp)
+        if r_norm <= self.tolerance * b_norm:
+            return 1, r_norm / b_norm, True
+        return None
 
     def step(self, u: np.ndarray, v: np.ndarray, f_ext: np.ndarray, dt: float) -> StepStatistics:
         """Advance ``u``, ``v`` in place by one backward-Euler step of size ``dt``."""
@@ -647,6 +387,7 @@ class BackwardEuler:
         ff.add_forces(u, v, b)
         nonsymmetric = self.consistent_tangent and getattr(ff, "nonlinear_fraction", 0.0) > 0.0
         self._tangent = ff.consistent_tangent_matvec if nonsymmetric else ff.tangent_matvec
+        self._consistent = nonsymmetric
         # Right-hand side h (f(u, v) + f_ext - h K_t v).
         self._tangent(v, tmp)
         tmp *= h
@@ -654,7 +395,17 @@ class BackwardEuler:
         b *= h
 
         self.preconditioner.update(h)
-        if nonsymmetric:
+        if self.extrapolate:
+            # initial guess: linear extrapolation of the last two solutions
+            np.subtract(self.dv, self._dv_prev, out=tmp)
+            np.copyto(self._dv_prev, self.dv)
+            self.dv += tmp
+        direct = self._direct_solve(b) if getattr(self.preconditioner, "exact", False) else None
+        if direct is not None:
+            # labelled with the Krylov method it stands for (its first iteration, exact here)
+            self.last_solver = self.nonsymmetric_solver if nonsymmetric else "cg"
+            iterations, residual, converged = direct
+        elif nonsymmetric:
             n = u.shape[0]
             if self.nonsymmetric_solver == "gmres":
                 if self._nonsymmetric_work is None:
@@ -675,6 +426,9 @@ class BackwardEuler:
                 self._apply_system, b, self.dv, self.preconditioner, self.free,
                 self.tolerance, self.max_iterations, self._cg_work,
             )
+        record = getattr(self.preconditioner, "record_iterations", None)
+        if record is not None:
+            record(iterations)
         if not (math.isfinite(residual) and np.isfinite(self.dv).all()):
             # Leave u and v untouched and the warm start usable for a retry.
             self.dv.fill(0.0)

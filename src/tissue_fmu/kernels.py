@@ -18,6 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .materials import GREEN_STRAIN_FLOOR
+
 # ----------------------------------------------------------------------------------------------
 # Linear tensor-mass operator (vertex + edge tensors)
 # ----------------------------------------------------------------------------------------------
@@ -220,7 +222,6 @@ def sym3_eigenvalues(m):
 # ETMM: Raghavan-Vorp secant stiffening (see materials.py for the derivation)
 # ----------------------------------------------------------------------------------------------
 
-GREEN_STRAIN_FLOOR = -0.45  # same as materials.GREEN_STRAIN_FLOOR
 
 
 @njit(cache=True)
@@ -285,12 +286,11 @@ def _element_phi_gradient(g, threshold, beta_over_alpha):
 
 
 @njit(cache=True)
-def _axisymmetric_extremes_gradient(g, sign, grad):
+def _axisymmetric_extremes_gradient(g, sign, grad, d, cof):
     """grad = d(extreme)/dE (symmetric 3x3) of the largest (sign +1) or smallest (sign -1)
     axisymmetric-equivalent value: I/3 + sign D/(4p) + d(p r)/2 with
     d(p r)/dE = 3 dev(cof D) / (D:D) - 6 det(D) D / (D:D)^2."""
     q = (g[0, 0] + g[1, 1] + g[2, 2]) / 3.0
-    d = np.empty((3, 3))
     for r in range(3):
         for c in range(3):
             d[r, c] = g[r, c]
@@ -306,7 +306,6 @@ def _axisymmetric_extremes_gradient(g, sign, grad):
     if p2 <= 1e-300:
         return
     p = math.sqrt(p2 / 6.0)
-    cof = np.empty((3, 3))
     cof[0, 0] = d[1, 1] * d[2, 2] - d[1, 2] * d[2, 1]
     cof[0, 1] = d[1, 2] * d[2, 0] - d[1, 0] * d[2, 2]
     cof[0, 2] = d[1, 0] * d[2, 1] - d[1, 1] * d[2, 0]
@@ -513,9 +512,9 @@ def scaled_elements_matvec(tets, grads, volumes, lam, mu, ids, count, weights, x
 
 
 @njit(cache=True, inline="always")
-def _extreme_strain_rate(g, h, dh, sign, grad):
+def _extreme_strain_rate(g, h, dh, sign, grad, d, cof):
     """d(extreme) = G : dE with dE = sym(F^T dH), G symmetric: = (F G) : dH, F = I + H."""
-    _axisymmetric_extremes_gradient(g, sign, grad)
+    _axisymmetric_extremes_gradient(g, sign, grad, d, cof)
     ds = 0.0
     for r in range(3):
         for c in range(3):
@@ -528,11 +527,16 @@ def _extreme_strain_rate(g, h, dh, sign, grad):
 def etmm_consistent_tangent(tets, grads, volumes, lam, mu, candidates, u, du, threshold,
                             beta_over_alpha, out):
     """out += d/d(eps) [phi(u + eps du) K_T (u + eps du)] at eps = 0 summed over candidates
-    (the exact derivative of the correction, including the change of phi; not symmetric)."""
+    (the exact derivative of the correction, including the change of phi; not symmetric).
+
+    The original all-candidate form (strain, phi and its gradient recomputed per product), kept as
+    the reference of etmm_tangent_data + etmm_nonlinear_tangent_matvec, which the step uses."""
     h = np.empty((3, 3))
     dh = np.empty((3, 3))
     g = np.empty((3, 3))
     grad = np.empty((3, 3))
+    d = np.empty((3, 3))
+    cof = np.empty((3, 3))
     for c in range(candidates.shape[0]):
         e = candidates[c]
         _displacement_gradient(tets, grads, e, u, h)
@@ -544,11 +548,124 @@ def etmm_consistent_tangent(tets, grads, volumes, lam, mu, candidates, u, du, th
         _add_scaled_element_force(tets, grads, volumes, lam, mu, e, dh, p, out)
         dphi = 0.0
         if c_max != 0.0:
-            dphi += c_max * _extreme_strain_rate(g, h, dh, 1.0, grad)
+            dphi += c_max * _extreme_strain_rate(g, h, dh, 1.0, grad, d, cof)
         if c_min != 0.0:
-            dphi += c_min * _extreme_strain_rate(g, h, dh, -1.0, grad)
+            dphi += c_min * _extreme_strain_rate(g, h, dh, -1.0, grad, d, cof)
         if dphi != 0.0:
             _add_scaled_element_force(tets, grads, volumes, lam, mu, e, h, dphi, out)
+
+
+@njit(cache=True)
+def etmm_tangent_data(tets, grads, volumes, lam, mu, ids, count, u, threshold, beta_over_alpha, p_out, wg_out,
+                      ku_out):
+    """Per super-threshold element c (e = ids[c], c < count) at displacement u, the data of its
+    consistent-tangent contribution  d(phi K_e u_e) = phi K_e du_e + (K_e u_e) (dphi/du_e . du_e):
+    p_out[c] = phi, wg_out[c, k] = dphi/du_k (= W g_k, W = c_max F G_max + c_min F G_min),
+    ku_out[c, j] = (K_e u_e)_j.  Elements below the threshold have phi = dphi = 0 and are not listed."""
+    h = np.empty((3, 3))
+    g = np.empty((3, 3))
+    grad = np.empty((3, 3))
+    w = np.empty((3, 3))
+    d = np.empty((3, 3))
+    cof = np.empty((3, 3))
+    for c in range(count):
+        e = ids[c]
+        _displacement_gradient(tets, grads, e, u, h)
+        _green_strain(h, g)
+        p, c_max, c_min, e_min, e_max = _element_phi_gradient(g, threshold, beta_over_alpha)
+        p_out[c] = p
+        for r in range(3):
+            for k in range(3):
+                w[r, k] = 0.0
+        for sign, coefficient in ((1.0, c_max), (-1.0, c_min)):
+            if coefficient != 0.0:
+                _axisymmetric_extremes_gradient(g, sign, grad, d, cof)
+                for r in range(3):
+                    for k in range(3):
+                        fg = grad[r, k] + h[r, 0] * grad[0, k] + h[r, 1] * grad[1, k] + h[r, 2] * grad[2, k]
+                        w[r, k] += coefficient * fg
+        for k in range(4):
+            for r in range(3):
+                wg_out[c, k, r] = w[r, 0] * grads[e, k, 0] + w[r, 1] * grads[e, k, 1] + w[r, 2] * grads[e, k, 2]
+                ku_out[c, k, r] = 0.0
+        tr = h[0, 0] + h[1, 1] + h[2, 2]
+        cl = volumes[e] * lam[e] * tr
+        cm = volumes[e] * mu[e]
+        for j in range(4):
+            for r in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += (h[r, k] + h[k, r]) * grads[e, j, k]
+                ku_out[c, j, r] = cl * grads[e, j, r] + cm * s
+
+
+@njit(cache=True)
+def etmm_nonlinear_tangent_matvec(tets, grads, volumes, lam, mu, ids, count, p, wg, ku, x, scale, out):
+    """out += scale * sum_c [p_c K_e x_e + ku_c (wg_c . x_e)]: the consistent ETMM correction of
+    the super-threshold elements only (data from etmm_tangent_data)."""
+    h = np.empty((3, 3))
+    for c in range(count):
+        e = ids[c]
+        _displacement_gradient(tets, grads, e, x, h)
+        _add_scaled_element_force(tets, grads, volumes, lam, mu, e, h, scale * p[c], out)
+        s = 0.0
+        for k in range(4):
+            node = tets[e, k]
+            s += wg[c, k, 0] * x[node, 0] + wg[c, k, 1] * x[node, 1] + wg[c, k, 2] * x[node, 2]
+        s *= scale
+        for j in range(4):
+            node = tets[e, j]
+            out[node, 0] += s * ku[c, j, 0]
+            out[node, 1] += s * ku[c, j, 1]
+            out[node, 2] += s * ku[c, j, 2]
+
+
+@njit(cache=True)
+def etmm_nonlinear_tangent_blocks(grads, volumes, lam, mu, ids, count, p, wg, ku, blocks):
+    """blocks[c, j, k] (3x3) = p_c K_e[j, k] + ku_c[j] (x) wg_c[k]: the element matrices of the
+    consistent ETMM correction, K_e[j, k] = V (lam g_j (x) g_k + mu g_k (x) g_j + mu (g_j . g_k) I)."""
+    for c in range(count):
+        e = ids[c]
+        vl = p[c] * volumes[e] * lam[e]
+        vm = p[c] * volumes[e] * mu[e]
+        for j in range(4):
+            for k in range(4):
+                dot = grads[e, j, 0] * grads[e, k, 0] + grads[e, j, 1] * grads[e, k, 1] + grads[e, j, 2] * grads[e, k, 2]
+                for a in range(3):
+                    for b in range(3):
+                        v = vl * grads[e, j, a] * grads[e, k, b] + vm * grads[e, k, a] * grads[e, j, b]
+                        if a == b:
+                            v += vm * dot
+                        blocks[c, j, k, a, b] = v + ku[c, j, a] * wg[c, k, b]
+
+
+@njit(cache=True)
+def scatter_element_blocks(tets, ids, count, blocks, scale, indptr, offsets, data):
+    """data[CSR entry of (3 t_j + a, 3 t_k + b)] += scale * blocks[c, j, k, a, b] for the elements
+    ids[:count]; offsets[e, j, k] = position of column 3 t_k in row 3 t_j minus indptr[3 t_j] (the
+    three rows of a node share one column pattern)."""
+    for c in range(count):
+        e = ids[c]
+        for j in range(4):
+            row = 3 * tets[e, j]
+            for k in range(4):
+                off = offsets[e, j, k]
+                for a in range(3):
+                    base = indptr[row + a] + off
+                    for b in range(3):
+                        data[base + b] += scale * blocks[c, j, k, a, b]
+
+
+@njit(cache=True)
+def rows_transpose_subtract(z_rows, rows, s, out):
+    """out -= sum_c s[c] z_rows[rows[c]] (= Z s with Z's columns stored as rows), without BLAS
+    (its threads spin-wait on a busy machine)."""
+    n = out.shape[0]
+    for c in range(rows.shape[0]):
+        r = rows[c]
+        sc = s[c]
+        for i in range(n):
+            out[i] -= sc * z_rows[r, i]
 
 
 @njit(cache=True)
@@ -585,6 +702,32 @@ def scaled_elements_energy(tets, grads, volumes, lam, mu, ids, count, weights, u
                 ee += s * s
         total += weights[e] * volumes[e] * (0.5 * lam[e] * tr * tr + mu[e] * ee)
     return total
+
+
+@njit(cache=True)
+def max_green_strain(tets, grads, u):
+    """max over elements of the largest principal Green strain magnitude (= element_max_green_strain
+    (...).max(), bit for bit): an element whose ||E||_F (>= every |principal strain|) does not exceed
+    the running maximum cannot raise it, so its eigenvalues are skipped."""
+    h = np.empty((3, 3))
+    g = np.empty((3, 3))
+    best = 0.0
+    best2 = 0.0
+    for e in range(tets.shape[0]):
+        _displacement_gradient(tets, grads, e, u, h)
+        _green_strain(h, g)
+        fro2 = 0.0
+        for r in range(3):
+            for c in range(3):
+                fro2 += g[r, c] * g[r, c]
+        if fro2 <= best2 and e > 0:
+            continue
+        e_min, e_mid, e_max = sym3_eigenvalues(g)
+        value = max(abs(e_min), abs(e_max))
+        if e == 0 or value > best:
+            best = value
+            best2 = value * value * (1.0 - 1e-12)
+    return best
 
 
 @njit(cache=True)

@@ -74,6 +74,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import MaterialError
+
 __all__ = [
     "MaterialError",
     "LAWS",
@@ -89,10 +91,6 @@ LAWS = ("linear", "etmm", "hyperelastic")
 # Green strains below -0.5 mean a collapsed element (stretch 0); the equivalent stretch is taken
 # from max(E, GREEN_STRAIN_FLOOR) so sqrt(1 + 2 E) stays real for badly compressed elements.
 GREEN_STRAIN_FLOOR = -0.45
-
-
-class MaterialError(ValueError):
-    """Invalid material parameter; the message names the parameter, the value and the fix."""
 
 
 def element_array(name: str, value, n_elements: int, example: str) -> np.ndarray:

@@ -21,6 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import MeshError
+from .precompute import signed_volumes
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
@@ -48,21 +51,12 @@ _EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int
 _MAX_LISTED_IDS = 10
 
 
-class MeshError(ValueError):
-    """Invalid mesh input; the message names the problem, the offending ids and the fix."""
-
-
 # --------------------------------------------------------------------------------------
 # Small vectorised geometry helpers
 # --------------------------------------------------------------------------------------
 
 
-def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    p0 = points[tets[:, 0]]
-    a = points[tets[:, 1]] - p0
-    b = points[tets[:, 2]] - p0
-    c = points[tets[:, 3]] - p0
-    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+_signed_volumes = signed_volumes
 
 
 def _edge_lengths(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -97,12 +91,13 @@ def _id_list(ids: np.ndarray) -> str:
 # --------------------------------------------------------------------------------------
 
 
-def validate_mesh(points, tets) -> None:
+def validate_mesh(points, tets, *, allow_inverted: bool = False) -> None:
     """Check a tetrahedral mesh; raise :class:`MeshError` naming the problem and the fix.
 
     Errors: wrong shapes or dtypes, NaN/Inf coordinates, node ids out of range, a node
     repeated inside a tet, degenerate tets (|V| <= 1e-12 * mean edge length^3), inverted tets
-    (V < 0) and non-manifold input (a face shared by more than two tets).  Nodes that no tet
+    (V < 0; accepted with ``allow_inverted=True``, for callers that are correct for either vertex
+    order, like :func:`assemble_stiffness`) and non-manifold input (a face shared by more than two tets).  Nodes that no tet
     references only produce a logged warning (they carry no mass or stiffness).
     """
     points = np.asarray(points)
@@ -168,7 +163,7 @@ def validate_mesh(points, tets) -> None:
             "length)^3; remove or re-mesh these elements"
         )
     inverted = np.flatnonzero(volumes < 0.0)
-    if inverted.size:
+    if inverted.size and not allow_inverted:
         raise MeshError(
             f"{inverted.size} inverted tet(s) (negative volume), first element ids "
             f"[{_id_list(inverted)}]: swap two nodes of each listed tet or pass "

@@ -15,23 +15,23 @@ from numbers import Integral, Real
 import numpy as np
 
 from .forcefield import TensorMassForceField
-from .precompute import tensors_to_csr
 from .integrators import (
     BackwardEuler,
-    FactorizedPreconditioner,
     JacobiPreconditioner,
     StabilityError,
     StepStatistics,
     SymplecticEuler,
     TissueError,
 )
+from .factorization import TangentFactorization
+from .materials import LAWS
 from .mesh import TetMesh, aaa_mesh, load_mesh
+from .precompute import signed_volumes
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["TissueError", "StabilityError", "TissueParameters", "TissueModel"]
 
-LAWS = ("linear", "etmm", "hyperelastic")
 INTEGRATORS = ("explicit", "implicit")
 PRECONDITIONERS = ("factorized", "jacobi")
 # A step that moves a node farther than this many mesh diameters has diverged.
@@ -93,7 +93,7 @@ class TissueParameters:
     substeps: int | str = "auto"  # explicit only: substeps per step, or "auto"
     cg_tolerance: float = 1e-6  # relative residual of the implicit solve
     cg_max_iterations: int = 1000
-    preconditioner: str = "factorized"  # implicit CG: "factorized" (M + h^2 K_0 at rest) or "jacobi"
+    preconditioner: str = "factorized"  # implicit: "factorized" (the step matrix, kept exact) or "jacobi"
     clamp: tuple[str, ...] = ("inlet", "outlet")  # node sets held at rest
     active_region: tuple[float, float, float, float] | None = None  # (cx, cy, cz, radius) m
     nonlinear_region: tuple[float, float, float, float] | None = None  # where ETMM may correct
@@ -268,6 +268,8 @@ class TissueModel:
         self._critical_time_step: float | None = None
         self._max_strain = 0.0          # of the current displacement, computed once per step
         self._strain_warned = False     # the extreme-strain warning is given once
+        self.last_dt: float | None = None  # size of the last step (default of compliance())
+        self._compliance_factors: dict = {}  # dt -> TangentFactorization, when the integrator's cannot serve
         self.integrator = self._make_integrator()
         logger.info(
             "tissue model: %d nodes (%d fixed), %d/%d active tets, %d surface nodes, law=%s, integrator=%s",
@@ -328,12 +330,7 @@ class TissueModel:
                 critical_time_step=self._critical_step(),
             )
         if p.preconditioner == "factorized":
-            ff = self.force_field
-            damping = ff.damping_tensors() if p.viscosity > 0.0 else None
-            preconditioner = FactorizedPreconditioner(
-                ff.stiffness_matrix(), self.masses, self.fixed,
-                damping=None if damping is None else tensors_to_csr(damping),
-            )
+            preconditioner = TangentFactorization(self.force_field, self.masses, self.fixed)
         else:
             preconditioner = JacobiPreconditioner(self.force_field, self.masses, self.fixed)
         return BackwardEuler(
@@ -396,6 +393,7 @@ class TissueModel:
         self._check_deformation(t, dt)
         self._statistics = stats
         self.time = float(t) + float(dt)
+        self.last_dt = float(dt)
 
     def _check_deformation(self, t: float, dt: float) -> None:
         """Extreme strain gets a warning; inverted elements or an absurd strain end the run.
@@ -407,17 +405,9 @@ class TissueModel:
         strain = self._max_strain = float(self.force_field.max_strain(self.displacement))
         if strain <= STRAIN_WARNING:
             return
-        points = self.mesh.points + self.displacement
         tets = self.mesh.tets[self.active_elements]
-        a = points[tets[:, 1]] - points[tets[:, 0]]
-        b = points[tets[:, 2]] - points[tets[:, 0]]
-        c = points[tets[:, 3]] - points[tets[:, 0]]
-        signed = np.einsum("ij,ij->i", a, np.cross(b, c))
-        rest = self.mesh.points
-        a0 = rest[tets[:, 1]] - rest[tets[:, 0]]
-        b0 = rest[tets[:, 2]] - rest[tets[:, 0]]
-        c0 = rest[tets[:, 3]] - rest[tets[:, 0]]
-        inverted = int(np.count_nonzero(signed * np.einsum("ij,ij->i", a0, np.cross(b0, c0)) <= 0.0))
+        deformed = signed_volumes(self.mesh.points + self.displacement, tets)
+        inverted = int(np.count_nonzero(deformed * signed_volumes(self.mesh.points, tets) <= 0.0))
         if inverted or strain > STRAIN_DIVERGENCE:
             what = f"{inverted} tetrahedra inverted" if inverted else f"Green strain {strain:.3g} > {STRAIN_DIVERGENCE:g}"
             raise TissueError(
@@ -443,9 +433,16 @@ class TissueModel:
         self.time = 0.0
         if isinstance(self.integrator, BackwardEuler):
             self.integrator.dv.fill(0.0)
+            self.integrator._dv_prev.fill(0.0)
 
     def get_state(self) -> dict:
-        """A copy of everything a step depends on (for FMU get/set state and rollback)."""
+        """A copy of the physical state a step depends on (for FMU get/set state and rollback).
+
+        Restoring it reproduces the run to solver tolerance; the implicit preconditioner's own
+        state (which tangent it last factorised, its Woodbury cache) is not included, so the Krylov
+        iterates may differ in the last digits.  For a bit-identical continuation copy the whole
+        model: ``copy.deepcopy(model)`` or ``pickle.loads(pickle.dumps(model))``.
+        """
         state = {
             "time": self.time,
             "displacement": self.displacement.copy(),
@@ -454,6 +451,7 @@ class TissueModel:
         }
         if isinstance(self.integrator, BackwardEuler):
             state["warm_start"] = self.integrator.dv.copy()
+            state["warm_start_previous"] = self.integrator._dv_prev.copy()
         return state
 
     def set_state(self, state: dict) -> None:
@@ -465,6 +463,8 @@ class TissueModel:
         self._max_strain = float(self.force_field.max_strain(self.displacement))
         if isinstance(self.integrator, BackwardEuler) and "warm_start" in state:
             np.copyto(self.integrator.dv, state["warm_start"])
+            if "warm_start_previous" in state:
+                np.copyto(self.integrator._dv_prev, state["warm_start_previous"])
 
     # ----------------------------------------------------------------------------------
     # Outputs
@@ -477,6 +477,110 @@ class TissueModel:
     def surface_positions(self) -> np.ndarray:
         """(n_surface, 3) current positions of the surface nodes."""
         return self.mesh.points[self.surface_nodes] + self.displacement[self.surface_nodes]
+
+    def compliance(self, surface_node_ids, dt: float | None = None) -> np.ndarray:
+        """(3p, 3p) compliance W of the given surface nodes over the next step of size ``dt``.
+
+        ``surface_node_ids``: p distinct local surface-node ids (rows of :meth:`surface_positions`).
+        ``W[3 a + i, 3 b + j]`` is the displacement (m) of node a, component i, at the end of the
+        next step per newton of extra contact force on node b, component j, held over the step:
+        for the backward-Euler step ``(M + h C + h^2 K_t) dv = h (f + f_ext - h K_t v)``,
+        ``u += h (v + dv)``, it is ``h^2 (M + h C + h^2 K_t)^-1`` restricted to those dofs, with the
+        tangent ``K_t`` the step uses at the current state (ETMM: consistent, so W is slightly
+        non-symmetric once elements are above the threshold; linear: symmetric positive definite).
+        Clamped or frozen dofs give zero rows and columns.  ``dt`` defaults to the last step's
+        size.  Each column is a pair of triangular solves with the integrator's factorisation
+        (made exact by iterative refinement when it lags the tangent); with the explicit or the
+        Jacobi integrator a factorisation of the same implicit matrix is built once per dt.
+        Does not change the model's results.
+        """
+        if dt is None:
+            dt = self.last_dt
+            if dt is None:
+                raise TissueError("compliance: no step has been taken yet, so give dt (s), e.g. compliance(ids, 1/30)")
+        if not _is_number(dt) or not math.isfinite(dt) or dt <= 0.0:
+            raise TissueError(f"compliance: dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
+        try:
+            ids = np.asarray(surface_node_ids)
+        except (TypeError, ValueError):
+            ids = np.asarray([], dtype=object)
+        if ids.ndim != 1 or ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
+            raise TissueError(f"compliance: surface_node_ids must be a non-empty 1-D sequence of integers "
+                              f"(local surface-node ids in [0, {self.n_surface})), got {surface_node_ids!r}")
+        if ids.min() < 0 or ids.max() >= self.n_surface:
+            raise TissueError(f"compliance: surface node ids must lie in [0, {self.n_surface}) "
+                              f"(got {ids.min()}..{ids.max()}): they index surface_positions()")
+        if np.unique(ids).size != ids.size:
+            raise TissueError(f"compliance: surface node ids repeat ({ids.tolist()}): give each node once")
+        h = float(dt)
+        nodes = self.surface_nodes[ids.astype(np.int64)]
+        dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        integrator = self.integrator
+        ff = self.force_field
+        # The tangent at the current state, as the next step will take it (same inputs, same result).
+        scratch = np.zeros_like(self.displacement)
+        ff.add_forces(self.displacement, self.velocity, scratch)
+        consistent = getattr(ff, "nonlinear_fraction", 0.0) > 0.0
+        if isinstance(integrator, BackwardEuler):
+            consistent = consistent and integrator.consistent_tangent
+        pc = None
+        if (isinstance(integrator, BackwardEuler) and isinstance(integrator.preconditioner, TangentFactorization)
+                and (integrator.preconditioner._h is None or integrator.preconditioner._h == h)):
+            pc = integrator.preconditioner
+        if pc is None:
+            pc = self._compliance_factors.get(h)
+            if pc is None:
+                pc = self._compliance_factors[h] = TangentFactorization(ff, self.masses, self.fixed)
+        pc.update(h)
+        free_index = pc._free_index
+        free_cols = np.flatnonzero(free_index[dofs] >= 0)
+        x = pc.inverse_block(nodes)  # exact modes: cached columns of A_0^-1 (+ Woodbury), O(k p)
+        if x is None:  # a lagging tangent factor or hyperelastic: solve, refine against the true matrix
+            rhs = np.zeros((pc.free_dofs.size, free_cols.size))
+            rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
+            x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent,
+                                        tolerance=float(self.params.cg_tolerance))
+            x = x[free_index[dofs[free_cols]], :]
+        w = np.zeros((dofs.size, dofs.size))
+        w[np.ix_(free_cols, free_cols)] = (h * h) * x
+        return w
+
+    def _refine_compliance(self, pc, rhs, x, h, consistent, tolerance=1e-11):
+        """Columns of A^-1 (A the current step matrix) for the unit right-hand sides ``rhs`` (free
+        numbering) by preconditioned GMRES per column, started from ``x`` = P^-1 rhs (P the
+        lagging tangent factor, or the rest factor for the hyperelastic law), to ``tolerance``
+        (the model's cg_tolerance: the accuracy the step itself is solved to)."""
+        from .solvers import GMRESWorkspace, preconditioned_gmres
+
+        n = self.mesh.n_nodes
+        free_dofs = pc.free_dofs
+        mass = np.repeat(np.where(self.masses > 0.0, self.masses, 1.0)[:, None], 3, axis=1)
+        free = np.repeat((~self.fixed)[:, None], 3, axis=1).astype(np.float64)
+        ff = self.force_field
+        c_scale = h if self.params.viscosity > 0.0 else 0.0
+        scratch = np.zeros((n, 3))
+
+        def apply(p, out):
+            ff.system_matvec(p, h * h, c_scale, out, consistent)
+            np.multiply(mass, p, out=scratch)
+            out += scratch
+
+        work = GMRESWorkspace(n)
+        b = np.zeros((n, 3))
+        column = np.zeros((n, 3))
+        result = np.empty_like(x)
+        for c in range(rhs.shape[1]):
+            b.fill(0.0)
+            b.reshape(-1)[free_dofs] = rhs[:, c]
+            column.fill(0.0)
+            column.reshape(-1)[free_dofs] = x[:, c]
+            iterations, residual, converged = preconditioned_gmres(
+                apply, b, column, pc, free, tolerance, self.params.cg_max_iterations, work)
+            if not converged:
+                logger.warning("compliance: column %d reached a relative residual of %.3g in %d GMRES iterations",
+                               c, residual, iterations)
+            result[:, c] = column.reshape(-1)[free_dofs]
+        return result
 
     def surface_velocities(self) -> np.ndarray:
         """(n_surface, 3) current velocities of the surface nodes."""

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 __all__ = [
+    "signed_volumes",
     "TensorMassTensors",
     "shape_gradients",
     "element_pair_blocks",
@@ -59,12 +60,26 @@ class TensorMassTensors:
         return TensorMassTensors(self.vertex * factor, self.edges, self.edge_tensors * factor)
 
 
+def signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m,) signed volumes det[p1 - p0, p2 - p0, p3 - p0] / 6 (> 0: positively oriented)."""
+    p0 = points[tets[:, 0]]
+    a = points[tets[:, 1]] - p0
+    b = points[tets[:, 2]] - p0
+    c = points[tets[:, 3]] - p0
+    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+
+
 def shape_gradients(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(grads (m, 4, 3), volumes (m,)) of linear tets; grads[e, j] = grad N_j (constant)."""
+    """(grads (m, 4, 3), volumes (m,)) of linear tets; grads[e, j] = grad N_j (constant).
+
+    Correct for any vertex order: the gradient of N_j belongs to the vertex listed j whatever the
+    orientation, and the volume is |det| / 6 (a negatively oriented tet used to get a negative
+    volume, i.e. a stiffness and mass of the wrong sign).
+    """
     p0 = points[tets[:, 0]]
     d = np.stack([points[tets[:, 1]] - p0, points[tets[:, 2]] - p0, points[tets[:, 3]] - p0], axis=2)
     # d has columns p_k - p_0; x = p0 + d xi, so grad xi_k = row k of d^-1 and N_k = xi_k.
-    volumes = np.linalg.det(d) / 6.0
+    volumes = np.abs(np.linalg.det(d)) / 6.0
     inv = np.linalg.inv(d)
     grads = np.empty((tets.shape[0], 4, 3))
     grads[:, 1:, :] = inv
@@ -157,10 +172,14 @@ def tensors_to_csr(t: TensorMassTensors) -> sp.csr_matrix:
 def assemble_stiffness(points, tets, young_modulus, poisson_ratio) -> sp.csr_matrix:
     """Global stiffness K (3n x 3n CSR, node-major dofs, f = -K u) from the tensor-mass tensors.
 
-    young_modulus, poisson_ratio: scalars or per-element (m,) arrays (validated).
+    young_modulus, poisson_ratio: scalars or per-element (m,) arrays (validated).  The tets may
+    list their vertices in any order (either orientation gives the same K); shapes, node ids,
+    degenerate (flat) and non-manifold tets are refused with a MeshError naming them.
     """
     from .materials import element_array, lame_parameters  # local: materials imports nothing here
+    from .mesh import validate_mesh  # local: mesh imports this module
 
+    validate_mesh(points, tets, allow_inverted=True)
     points = np.asarray(points, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
     m = tets.shape[0]
