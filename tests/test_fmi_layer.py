@@ -174,6 +174,7 @@ STATE_CASES = {
     # a probe pressed into the sac wall (the default catheter points far inside the lumen, 31 of them)
     "Contact": (40, 60, "tool_positions", np.tile([0.0235, 0.0, 0.065], 31),
                 ["tool_force", "tissue_contact_force", "passivity_energy", "contact_energy"]),
+    "Tissue": (3, 3, "contact_force", np.full(8064, 2e-4), ["surface_positions", "strain_energy", "kinetic_energy"]),
 }
 
 
@@ -187,8 +188,8 @@ def _drive(fmu, name, start, steps):
 
 
 @pytest.mark.parametrize("name", list(STATE_CASES))
-def test_fmu_state_restores_bit_identically(name, catheter_fmu, contact_fmu, tmp_path):
-    fmus = {"Catheter": catheter_fmu, "Contact": contact_fmu}
+def test_fmu_state_restores_bit_identically(name, catheter_fmu, contact_fmu, tissue_fmu, tmp_path):
+    fmus = {"Catheter": catheter_fmu, "Contact": contact_fmu, "Tissue": tissue_fmu}
     before, after = STATE_CASES[name][:2]
     with fmu_instance(fmus[name]) as fmu:
         fmu.initialize()

@@ -92,7 +92,7 @@ def test_runs_in_a_c_host_with_the_numbers_of_fmpy(host, fmus, name, tmp_path):
         np.testing.assert_array_equal(c_values[port], expected, err_msg=f"{name}.{port}")
 
 
-@pytest.mark.parametrize("name", ["Catheter", "Contact"])
+@pytest.mark.parametrize("name", list(CASES))
 def test_state_saved_serialized_and_replayed_bit_identically_in_a_c_host(host, fmus, name, tmp_path):
     result = _run(host, _arguments(name, fmus[name], tmp_path / "run", state=True))
     assert result.returncode == 0, result.stderr[-2000:]
