@@ -77,9 +77,34 @@ def test_repeated_contacts_below_the_bound_pump_energy(study):
     assert below["wall_share_of_dissipation"] > 1.0
 
 
-def _multirate(results):
+def _multirate(results, stiffness=200.0):
     return {(r.point["tissue_rate"], r.point["local_model"], r.point["passivity"]): r.values
-            for r in _ok(results, "multirate")}
+            for r in _ok(results, "multirate") if r.point.get("stiffness", 200.0) == stiffness}
+
+
+@pytest.mark.parametrize("stiffness", [200.0, 1000.0, 3000.0])
+def test_compliance_local_model_tracks_the_single_rate_reference(study, stiffness):
+    """Issue 12: with the wall's compliance the 30 Hz wall renders a stiff contact at 1 kHz: force
+    error against the single-rate reference <= 5 % RMS of the peak at 1000 N/m, smaller than hold's
+    at every stiffness, and no limit cycle where hold has one."""
+    _, _, results = study
+    m = _multirate(results, stiffness)
+    compliance, hold = m[(30, "compliance", False)], m[(30, "hold", False)]
+    assert compliance["force_error_rms"] < hold["force_error_rms"], (compliance, hold)
+    assert compliance["stable"]
+    if stiffness == 1000.0:
+        assert compliance["force_error_rms"] <= 0.05
+    if stiffness >= 1000.0:
+        assert not hold["stable"]  # the one-frame delay of a held wall limit-cycles at a device's stiffness
+
+
+def test_stability_map_puts_compliance_above_hold(study):
+    from orchestration.studies.stability import stability_map
+
+    _, _, results = study
+    found = stability_map(results)
+    assert found[(1000, 30, "compliance")] >= 3000.0
+    assert found[(1000, 30, "hold")] < 1000.0
 
 
 def test_multirate_force_error_converges_first_order_in_the_tissue_rate(study):

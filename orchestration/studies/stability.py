@@ -170,6 +170,14 @@ def repeated_contacts(K, B, b_dev, T, mass, press_steps, release_steps, n_presse
 # -- multirate tissue/haptic coupling ------------------------------------------------------------
 COARSE_MESH = {"n_circumferential": 16, "n_axial": 20, "n_radial": 1}
 HOLD_PHASE = (1.3, 2.0)          # s: probe at rest, the reference force is nearly steady
+#: Penalty stiffness of the convergence and passivity rows (the scenes' value when they were
+#: measured); the stiffness map goes up to a device's maximum.
+BASE_STIFFNESS = 200.0
+MAP_STIFFNESSES = (200.0, 500.0, 1000.0, 2000.0, 3000.0, 5000.0)
+LOCAL_MODELS = ("hold", "extrapolate", "compliance")
+#: A run is stable when |F| varies by less than this fraction of its mean in the hold phase (the
+#: single-rate references vary by less than 0.1 %; a limit cycle by tens of per cent).
+STABLE_RIPPLE = 0.05
 
 
 PROBE_TIMES = (0.0, 0.2, 1.2, 2.0)   # s, as the scene: wait, indent over 1 s, hold
@@ -213,13 +221,13 @@ def _probe_path(times: np.ndarray, overrides: dict) -> np.ndarray:
     return np.stack([np.interp(times, PROBE_TIMES, knots[:, i]) for i in range(3)], axis=1)
 
 
-def indentation_run(tissue_rate, haptic_rate, local_model, passivity) -> dict:
+def indentation_run(tissue_rate, haptic_rate, local_model, passivity, stiffness=BASE_STIFFNESS) -> dict:
     """tissue_indentation on the coarse mesh: time, tool force (n, 3), port energy (n,)."""
     from ..recording import port_values
 
     overrides = _coarse_mesh_overrides()
     overrides.update({"tissue.step": f"1/{int(tissue_rate)}", "contact.step": f"1/{int(haptic_rate)}",
-                      "contact.local_model": str(local_model),
+                      "contact.local_model": str(local_model), "contact.stiffness": float(stiffness),
                       "contact.passivity_controller": bool(passivity)})
     summary, sim = run_point("tissue_indentation", overrides)
     if summary.get("status") not in (None, "ok", "completed"):
@@ -241,7 +249,10 @@ def force_oscillation(time, force) -> dict:
     # ignore round-off wiggles: a step counts when |F| moves by more than 0.1 % of its peak
     slope = slope[np.abs(slope) > 1e-3 * max(float(np.max(mag)), 1e-12)]
     changes = int(np.sum(np.sign(slope[1:]) != np.sign(slope[:-1])))
-    return {"ripple_N": float(np.ptp(mag)) if mag.size else 0.0,
+    mean = float(np.mean(mag)) if mag.size else 0.0
+    ripple = float(np.ptp(mag)) if mag.size else 0.0
+    return {"ripple_N": ripple, "mean_hold_force_N": mean,
+            "stable": bool(mag.size and mean > 0 and ripple < STABLE_RIPPLE * mean),
             "slope_sign_changes_per_s": changes / (HOLD_PHASE[1] - HOLD_PHASE[0])}
 
 
@@ -291,14 +302,17 @@ def study_task(point: dict) -> dict:
                 "wall_energy_per_press_over_spring": out["wall_energy_per_press_J"]
                 / (0.5 * OPERATOR_FORCE ** 2 / point["K"])}
     if kind == "reference":
-        run = indentation_run(point["haptic_rate"], point["haptic_rate"], "hold", False)
+        # the wall's compliance even at the single rate: a held wall with a one-step delay limit-cycles
+        # from about 3000 N/m at 1 kHz, so it cannot be the reference there
+        run = indentation_run(point["haptic_rate"], point["haptic_rate"], "compliance", False,
+                              point.get("stiffness", BASE_STIFFNESS))
         _save_reference(Path(point["path"]), run)
         return {**force_oscillation(run["time"], run["force"]),
                 "final_force_N": float(np.linalg.norm(run["force"][-1])),
                 "port_energy_J": float(run["port_energy"][-1])}
     if kind == "multirate":
         run = indentation_run(point["tissue_rate"], point["haptic_rate"], point["local_model"],
-                              bool(point["passivity"]))
+                              bool(point["passivity"]), point.get("stiffness", BASE_STIFFNESS))
         ref = _load_reference(point["reference"])
         return {**compare_to_reference(run, ref), **force_oscillation(run["time"], run["force"])}
     raise ValueError(f"unknown point kind {kind!r}: use bcrit, contacts, reference or multirate")
@@ -336,6 +350,9 @@ def _grid(quick: bool, out: Path) -> tuple[list[dict], list[dict]]:
         tissue_rates, haptic_rates = (15, 30, 120), (1000,)
         variants = [("hold", False)]
         extra = [(30, 1000, "hold", True), (30, 1000, "extrapolate", False)]
+        # the local models at three stiffnesses: error against the single-rate reference, stability
+        stiff = [(30, 1000, lm, False, k) for lm in LOCAL_MODELS for k in (200.0, 1000.0, 3000.0)
+                 if (lm, k) not in (("hold", BASE_STIFFNESS), ("extrapolate", BASE_STIFFNESS))]
     else:
         lines = [(K, B, T) for K in (500.0, 1000.0, 2000.0) for B in (0.0, 0.5, 2.0)
                  for T in (2.5e-4, 5e-4, 1e-3, 2e-3, 4e-3)]
@@ -343,21 +360,29 @@ def _grid(quick: bool, out: Path) -> tuple[list[dict], list[dict]]:
         contacts = [(K, B, T, r) for K in (500.0, 2000.0) for B in (0.0, 0.5) for T in (1e-3, 4e-3)
                     for r in (0.6, 0.8, 0.9, 0.95, 1.05, 1.1, 1.25, 1.5)]
         tissue_rates, haptic_rates = (15, 30, 60, 120), (250, 1000, 4000)
-        variants = [(lm, pc) for lm in ("hold", "extrapolate") for pc in (False, True)]
+        variants = [(lm, pc) for lm in LOCAL_MODELS for pc in (False, True)]
         extra = []
+        # the stability map: largest stable stiffness against tissue and haptic rate, per local model
+        stiff = [(tr, h, lm, False, k) for h in haptic_rates for tr in tissue_rates for lm in LOCAL_MODELS
+                 for k in MAP_STIFFNESSES if k != BASE_STIFFNESS]
     first = [{"kind": "bcrit", "K": K, "B": B, "T": T, "mass": light_mass(K, B, T), "n_steps": 400}
              for K, B, T in lines]
     first += [{"kind": "bcrit", "K": K, "B": B, "T": T, "mass": DEVICE_MASS, "n_steps": 3000}
               for K, B, T in heavy]
     first += [{"kind": "contacts", "K": K, "B": B, "T": T, "mass": light_mass(K, B, T), "b_over_bound": r,
                "press_steps": 300, "release_steps": 150} for K, B, T, r in contacts]
-    refs = {h: str(out / "references" / f"single_rate_{h}Hz.npz") for h in haptic_rates}
-    first += [{"kind": "reference", "haptic_rate": h, "path": p} for h, p in refs.items()]
+    stiffnesses = sorted({BASE_STIFFNESS} | {k for *_, k in stiff})
+    refs = {(h, k): str(out / "references" / f"single_rate_{h}Hz_{k:g}Nm.npz")
+            for h in haptic_rates for k in stiffnesses}
+    first += [{"kind": "reference", "haptic_rate": h, "stiffness": k, "path": p} for (h, k), p in refs.items()]
     multirate = [{"kind": "multirate", "tissue_rate": tr, "haptic_rate": h, "local_model": lm,
-                  "passivity": pc, "reference": refs[h]}
+                  "passivity": pc, "stiffness": BASE_STIFFNESS, "reference": refs[(h, BASE_STIFFNESS)]}
                  for h in haptic_rates for tr in tissue_rates for lm, pc in variants]
     multirate += [{"kind": "multirate", "tissue_rate": tr, "haptic_rate": h, "local_model": lm,
-                   "passivity": pc, "reference": refs[h]} for tr, h, lm, pc in extra]
+                   "passivity": pc, "stiffness": BASE_STIFFNESS, "reference": refs[(h, BASE_STIFFNESS)]}
+                  for tr, h, lm, pc in extra]
+    multirate += [{"kind": "multirate", "tissue_rate": tr, "haptic_rate": h, "local_model": lm,
+                   "passivity": pc, "stiffness": k, "reference": refs[(h, k)]} for tr, h, lm, pc, k in stiff]
     return first, multirate
 
 
@@ -429,7 +454,7 @@ def multirate_findings(results) -> list[str]:
     """Convergence order in the tissue rate, extrapolate against hold, passivity on against off."""
     multi = _ok(results, "multirate")
     table = {(r.point["haptic_rate"], r.point["tissue_rate"], r.point["local_model"], r.point["passivity"]): r.values
-             for r in multi}
+             for r in multi if _stiffness(r) == BASE_STIFFNESS}
     found = []
     for (h, model) in sorted({(k[0], k[2]) for k in table}):
         rates = sorted(k[1] for k in table if k[0] == h and k[2] == model and not k[3])
@@ -454,6 +479,45 @@ def multirate_findings(results) -> list[str]:
         min_e = min(a["min_port_energy_J"] for a, b in onoff)
         found.append(f"passivity controller on vs off: largest change of the force error {diff:.2e} over {len(onoff)} "
                      f"pairs; the smallest port energy seen is {min_e:.2e} J (the controller acts only when it is < 0)")
+    by_stiffness = {}
+    for r in multi:
+        if not r.point["passivity"]:
+            by_stiffness[(r.point["haptic_rate"], r.point["tissue_rate"], _stiffness(r), r.point["local_model"])] = r.values
+    for (h, tr, k) in sorted({key[:3] for key in by_stiffness}):
+        models = {m: by_stiffness[(h, tr, k, m)] for m in LOCAL_MODELS if (h, tr, k, m) in by_stiffness}
+        if len(models) > 1:
+            found.append(f"haptic {h} Hz, tissue {tr} Hz, {k:g} N/m: force error " + ", ".join(
+                f"{m} {v['force_error_rms']:.3g}{'' if v['stable'] else ' (limit cycle)'}" for m, v in models.items()))
+    for (h, tr, m), k in sorted(stability_map(results).items()):
+        found.append(f"largest stable stiffness, haptic {h} Hz, tissue {tr} Hz, {m}: {k:g} N/m")
+    return found
+
+
+def _stiffness(result) -> float:
+    return float(result.point.get("stiffness", BASE_STIFFNESS))
+
+
+def stability_map(results) -> dict:
+    """(haptic rate, tissue rate, local model) -> the largest stiffness of the grid below which every
+    run is stable (0 when the smallest already limit-cycles), over the points without passivity
+    control; only where at least two stiffnesses were run."""
+    runs = {}
+    for r in results:
+        if r.point.get("kind") != "multirate" or r.point.get("passivity"):
+            continue
+        stable = r.status == "ok" and bool(r.values.get("stable"))
+        runs.setdefault((r.point["haptic_rate"], r.point["tissue_rate"], r.point["local_model"]), []).append(
+            (_stiffness(r), stable))
+    found = {}
+    for key, points in runs.items():
+        if len(points) < 2:
+            continue
+        largest = 0.0
+        for k, stable in sorted(points):
+            if not stable:
+                break
+            largest = k
+        found[key] = largest
     return found
 
 
@@ -515,7 +579,7 @@ def _figures(out: Path, results) -> list[str]:
         fig.savefig(out / "wall_energy.png", dpi=110)
         plt.close(fig)
         files.append("wall_energy.png")
-    multi = [r for r in _ok(results, "multirate") if not r.point["passivity"]]
+    multi = [r for r in _ok(results, "multirate") if not r.point["passivity"] and _stiffness(r) == BASE_STIFFNESS]
     if multi:
         tissue = sorted({r.point["tissue_rate"] for r in multi})
         haptic = sorted({r.point["haptic_rate"] for r in multi})
@@ -606,7 +670,7 @@ def _report(results, figures, quick) -> str:
     if multi:
         lines += ["", "## Multirate tissue/haptic coupling (tissue_indentation, coarse mesh 16x20x1)", "",
                   "Force error: RMS over time of |F - F_ref| / max |F_ref|, F_ref the single-rate run "
-                  "(tissue rate = haptic rate, hold) at the same haptic rate. Energy drift: (E - E_ref) / "
+                  "(tissue rate = haptic rate, compliance local model) at the same haptic rate and stiffness. Energy drift: (E - E_ref) / "
                   "E_ref of the work the probe did on the environment (E = -sum F_k . dx_k, F held over the "
                   "haptic step). Oscillation: peak-to-peak of |F| and sign changes/s of d|F|/dt (steps > "
                   "0.1 % of peak) in the hold phase t in [1.3, 2] s. The probe travels along the normal of the "
@@ -615,17 +679,27 @@ def _report(results, figures, quick) -> str:
                   "jumps between facets and the lateral force flips sign between runs that differ by "
                   "round-off, which would swamp the multirate effects.", ""]
         for r in _ok(results, "reference"):
-            lines.append(f"Reference {r.point['haptic_rate']} Hz: final |F| {r.values['final_force_N']:.4g} N, "
+            lines.append(f"Reference {r.point['haptic_rate']} Hz, {_stiffness(r):g} N/m: final |F| {r.values['final_force_N']:.4g} N, "
                          f"ripple {r.values['ripple_N']:.3g} N, port energy {r.values['port_energy_J']:.4g} J.")
-        lines += ["", "| haptic Hz | tissue Hz | local model | passivity | force err RMS | force err max | "
-                  "energy drift | ripple (N) | d|F| sign changes/s | min port energy (J) |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
-        for r in sorted(multi, key=lambda r: (r.point["haptic_rate"], r.point["local_model"],
+        lines += ["", f"Stable: |F| varies by less than {STABLE_RIPPLE:.0%} of its mean in the hold phase.", "",
+                  "| haptic Hz | tissue Hz | stiffness N/m | local model | passivity | force err RMS | force err max | "
+                  "energy drift | ripple (N) | stable | d|F| sign changes/s | min port energy (J) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in sorted(multi, key=lambda r: (r.point["haptic_rate"], _stiffness(r), r.point["local_model"],
                                               r.point["passivity"], r.point["tissue_rate"])):
             p, v = r.point, r.values
-            lines.append(f"| {p['haptic_rate']} | {p['tissue_rate']} | {p['local_model']} | {p['passivity']} | "
-                         f"{v['force_error_rms']:.3f} | {v['force_error_max']:.3f} | {v['energy_drift']:.4f} | "
-                         f"{v['ripple_N']:.3f} | {v['slope_sign_changes_per_s']:.1f} | {v['min_port_energy_J']:.2e} |")
+            lines.append(f"| {p['haptic_rate']} | {p['tissue_rate']} | {_stiffness(r):g} | {p['local_model']} | "
+                         f"{p['passivity']} | {v['force_error_rms']:.3f} | {v['force_error_max']:.3f} | "
+                         f"{v['energy_drift']:.4f} | {v['ripple_N']:.3f} | {v['stable']} | "
+                         f"{v['slope_sign_changes_per_s']:.1f} | {v['min_port_energy_J']:.2e} |")
+        found = stability_map(results)
+        if found:
+            lines += ["", "Largest stable stiffness (N/m) of the grid, by local model:", "",
+                      "| haptic Hz | tissue Hz | " + " | ".join(LOCAL_MODELS) + " |",
+                      "|---|---|" + "---|" * len(LOCAL_MODELS)]
+            for h, tr in sorted({(a, b) for a, b, _ in found}):
+                lines.append(f"| {h} | {tr} | " + " | ".join(
+                    f"{found[(h, tr, m)]:g}" if (h, tr, m) in found else "" for m in LOCAL_MODELS) + " |")
     if multi:
         lines += ["", "Findings (computed from the rows above):", ""] + [f"- {f}" for f in multirate_findings(results)]
     if failed:

@@ -35,6 +35,8 @@ STRING_PARAMETERS = [
     ("interpolation", "tissue trajectories between frames for CCD: linear or cubic"),
     ("local_model", "the wall between tissue frames: " + ", ".join(LOCAL_POLICIES)),
     ("tool", "centerline (catheter capsules) or probe (one device point)"),
+    ("compliance_free_motion", "the wall's free motion between frames with the compliance model: hold or "
+                               "extrapolate"),
 ]
 
 
@@ -49,6 +51,7 @@ def _default_surface() -> tuple[np.ndarray, np.ndarray]:
 # Read once at import: later instances in the same process may outlive the extraction folder.
 DEFAULT_TRIANGLES, DEFAULT_POSITIONS = _default_surface()
 PER_NODE, PER_TOOL = ("n_surface_nodes", 3), ("n_tool_points", 3)
+PATCH_DOFS = ("max_patch_nodes", 3, "max_patch_nodes", 3)
 
 VARIABLES = (
     *(parameter(name, float(getattr(_defaults, name)), text, unit) for name, unit, text in FLOAT_PARAMETERS),
@@ -58,6 +61,10 @@ VARIABLES = (
     structural("n_surface_nodes", len(DEFAULT_POSITIONS), "tissue surface nodes (array size)"),
     structural("n_surface_triangles", len(DEFAULT_TRIANGLES), "tissue surface triangles (array size)"),
     structural("n_tool_points", 31, "tool points: catheter centerline points, or 1 for a probe"),
+    structural("max_patch_nodes", _defaults.max_patch_nodes,
+               "most surface nodes the contact names for the wall's compliance (array size)"),
+    parameter("compliance_force_lag", int(_defaults.compliance_force_lag),
+              "frames between a haptic interval and the tissue frame computed under its mean force"),
     parameter("surface_triangles", DEFAULT_TRIANGLES, "tissue surface triangles (local surface-node ids, outward)",
               type="Int32", shape=("n_surface_triangles", 3)),
     input_port("tissue_positions", "tissue surface node positions (from Tissue)", "m", shape=PER_NODE,
@@ -65,6 +72,11 @@ VARIABLES = (
     input_port("tissue_velocities", "tissue surface node velocities (from Tissue)", "m/s", shape=PER_NODE),
     input_port("tissue_frame", "tissue frame counter (from Tissue's frame): the tissue inputs are taken "
                "when it changes", type="Int32", start=0),
+    input_port("compliance", "compliance W of the wall at the patch over the next tissue step (from Tissue): "
+               "node-major (x, y, z) rows and columns of compliance_nodes; -1 slots ignored", "m/N",
+               shape=PATCH_DOFS),
+    input_port("compliance_nodes", "the surface nodes W was computed for (from Tissue), -1 padded",
+               type="Int32", shape=("max_patch_nodes",), start=-1),
     input_port("tool_positions", "tool points (catheter centerline from Catheter, or the device probe)", "m",
                shape=PER_TOOL),
     input_port("tool_velocities", "tool point velocities (optional; differenced from positions when never set)",
@@ -76,6 +88,8 @@ VARIABLES = (
     output("contact_energy", "penalty potential energy", "J"),
     output("passivity_energy", "energy into the environment through the haptic port (>= 0: passive)", "J"),
     output("contact_count", "number of active contacts", type="Int32"),
+    output("patch_nodes", "surface nodes in or near the contact whose compliance the wall model needs (to "
+           "Tissue), ascending, -1 padded", type="Int32", shape=("max_patch_nodes",)),
 )
 
 
@@ -86,19 +100,30 @@ class ContactFmu:
         self.values = v = values
         params = ContactParameters(
             passivity_controller=bool(v.passivity_controller),
+            max_patch_nodes=v.max_patch_nodes, compliance_force_lag=v.compliance_force_lag,
             **{name: float(getattr(v, name)) for name, _, _ in FLOAT_PARAMETERS},
             **{name: str(getattr(v, name)) for name, _ in STRING_PARAMETERS},
         )
         self.model = ContactModel(np.array(v.surface_triangles), int(v.n_surface_nodes), int(v.n_tool_points),
                                   params)
-        self.model.set_tissue_frame(float(v.time), v.tissue_positions, v.tissue_velocities)
+        self._take_frame(float(v.time))
         self.frame = int(v.tissue_frame)
+        v.patch_nodes = self.model.patch_nodes()
+
+    def _take_frame(self, t: float) -> None:
+        v = self.values
+        nodes = v.compliance_nodes
+        if (nodes >= 0).any():
+            self.model.set_tissue_frame(t, v.tissue_positions, v.tissue_velocities, compliance=v.compliance,
+                                        compliance_nodes=nodes)
+        else:
+            self.model.set_tissue_frame(t, v.tissue_positions, v.tissue_velocities)
 
     def step(self, t: float, dt: float) -> None:
         v = self.values
         frame = v.tissue_frame
         if frame != self.frame:
-            self.model.set_tissue_frame(t, v.tissue_positions, v.tissue_velocities)
+            self._take_frame(t)
             self.frame = frame
         velocities = v.tool_velocities if v.set_count("tool_velocities") else None
         out = self.model.step(t, dt, v.tool_positions, velocities)
@@ -109,6 +134,7 @@ class ContactFmu:
         v.contact_count = int(out.contact_count)
         v.contact_energy = out.contact_energy
         v.passivity_energy = out.passivity_energy
+        v.patch_nodes = self.model.patch_nodes()
 
 
 DECLARATION = FmuDeclaration(

@@ -56,11 +56,19 @@ VARIABLES = (
       for name, value in AAA_RESOLUTION.items()),
     structural("n_surface_nodes", _n_nodes, "surface nodes of the mesh (array size)"),
     structural("n_surface_triangles", _n_triangles, "surface triangles of the mesh (array size)"),
+    structural("n_patch_nodes", 16, "most surface nodes whose compliance Contact may ask for (array size)"),
     input_port("contact_force", "nodal contact forces on the surface nodes", "N", shape=PER_NODE),
+    input_port("patch_nodes", "surface nodes whose compliance is wanted (from Contact), -1 padded", type="Int32",
+               shape=("n_patch_nodes",), start=-1),
     output("surface_positions", "positions of the surface nodes", "m", shape=PER_NODE),
     output("surface_velocities", "velocities of the surface nodes", "m/s", shape=PER_NODE),
     calculated("surface_triangles", "surface triangles (indices into the surface nodes, outward)",
                shape=("n_surface_triangles", 3), type="Int32"),
+    output("compliance", "compliance W of the wall at compliance_nodes over the next step: the displacement "
+           "per newton held over the step, node-major (x, y, z) rows and columns; zero for -1 slots", "m/N",
+           shape=("n_patch_nodes", 3, "n_patch_nodes", 3)),
+    output("compliance_nodes", "the surface nodes W was computed for (patch_nodes when the step ended)",
+           type="Int32", shape=("n_patch_nodes",)),
     output("frame", "tissue frames computed (internal steps): changes exactly when the outputs are new",
            type="Int32"),
     output("strain_energy", "elastic strain energy", "J"),
@@ -109,6 +117,7 @@ class TissueFmu:
         self.model = model
         v.surface_triangles = model.surface_triangles
         v.frame = 0
+        v.compliance_nodes = -1
         self._publish()
 
     def step(self, t: float, dt: float) -> None:
@@ -117,6 +126,27 @@ class TissueFmu:
         self.model.step(t, dt)
         v.frame = v.frame + 1
         self._publish()
+        self._publish_compliance(dt)
+
+    def _publish_compliance(self, dt: float) -> None:
+        """W for the patch Contact named, over the next step. ETMM's consistent tangent makes W
+        slightly non-symmetric above the strain threshold; its symmetric part (positive definite)
+        is what a penalty contact with a conservative wall uses."""
+        v = self.values
+        nodes = np.array(v.patch_nodes)
+        valid = np.flatnonzero(nodes >= 0)
+        w = np.zeros((nodes.size * 3, nodes.size * 3))
+        if valid.size:
+            ids = nodes[valid]
+            if ids.max() >= self.model.n_surface or np.unique(ids).size != ids.size:
+                raise ValueError(f"patch_nodes must be distinct surface node ids in [0, {self.model.n_surface}) "
+                                 f"or -1 (got {ids.tolist()})")
+            block = self.model.compliance(ids, dt)
+            block = 0.5 * (block + block.T)
+            dofs = (3 * valid[:, None] + np.arange(3)).ravel()
+            w[np.ix_(dofs, dofs)] = block
+        v.compliance = w.reshape(v.compliance.shape)
+        v.compliance_nodes = nodes
 
     def _publish(self) -> None:
         model, v = self.model, self.values
