@@ -144,3 +144,31 @@ def test_twenty_fresh_processes_run_a_short_scene_and_exit_normally(built, tmp_p
         results = list(pool.map(one, range(20)))
     codes = [r.returncode for r in results]
     assert codes == [0] * 20, [r.stderr[-500:] for r in results if r.returncode]
+
+
+def _tool_force(out: Path):
+    import csv
+
+    rows = list(csv.reader((out / "contact.csv").open()))
+    head, data = rows[0], np.array([[float(x) for x in r] for r in rows[1:] if len(r) == len(rows[0])])
+    force = np.linalg.norm(data[:, [head.index(f"tool_force[{i}]") for i in range(3)]], axis=1)
+    return data[:, 0], force
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stiffness", [1000.0, 3000.0])
+def test_default_scene_renders_a_device_stiffness_without_chatter(built, tmp_path, stiffness):
+    """Issue 12 on the main job: at a desktop device's stiffness the 30 Hz wall, yielding through
+    its compliance at 1 kHz, neither limit-cycles once the controller holds the force (measured:
+    the force varies by 1.6 % / 2.0 % of its mean after 3 s; with "extrapolate" at 1000 N/m it
+    chatters between 0 and 1.5 N) nor spikes at the onset of contact (largest drop from a running
+    maximum in the first 0.4 s: 1.2 % / 1.8 %; 40 % with the former 200 N/m "extrapolate")."""
+    scene = load_scene("aaa_endovascular", {"contact.stiffness": stiffness})
+    summary, _ = run_scene(scene, tmp_path, progress=False, plots=False)
+    assert summary["status"] == "completed"
+    t, force = _tool_force(tmp_path)
+    settled = force[t > 3.0]
+    assert np.ptp(settled) < 0.05 * settled.mean(), (np.ptp(settled), settled.mean())
+    onset = np.flatnonzero(force > 0)[0]
+    window = force[(t >= t[onset]) & (t <= t[onset] + 0.4)]
+    assert np.max(np.maximum.accumulate(window) - window) < 0.10 * window.max()
