@@ -51,6 +51,8 @@ VARIABLES = (
     parameter("mesh_file", "", "tetrahedral mesh file (meshio format); empty: built-in AAA generator"),
     parameter("substeps", 0, "explicit substeps per internal step (0: automatic)"),
     parameter("cg_max_iterations", int(_defaults.cg_max_iterations), "maximum Krylov iterations"),
+    parameter("compliance_tolerance", 1e-2, "relative residual of the compliance solves when the factorisation "
+              "lags the tangent (W is Contact's model of the wall between frames)"),
     *(parameter(name, value, f"AAA generator: {name.replace('_', ' ')}", "m") for name, value in AAA_SIZES.items()),
     *(parameter(name, value, f"AAA generator: {name.replace('_', ' ')} element count")
       for name, value in AAA_RESOLUTION.items()),
@@ -141,7 +143,7 @@ class TissueFmu:
             if ids.max() >= self.model.n_surface or np.unique(ids).size != ids.size:
                 raise ValueError(f"patch_nodes must be distinct surface node ids in [0, {self.model.n_surface}) "
                                  f"or -1 (got {ids.tolist()})")
-            block = self.model.compliance(ids, dt)
+            block = self.model.compliance(ids, dt, tolerance=v.compliance_tolerance)
             block = 0.5 * (block + block.T)
             dofs = (3 * valid[:, None] + np.arange(3)).ravel()
             w[np.ix_(dofs, dofs)] = block

@@ -478,7 +478,7 @@ class TissueModel:
         """(n_surface, 3) current positions of the surface nodes."""
         return self.mesh.points[self.surface_nodes] + self.displacement[self.surface_nodes]
 
-    def compliance(self, surface_node_ids, dt: float | None = None) -> np.ndarray:
+    def compliance(self, surface_node_ids, dt: float | None = None, tolerance: float | None = None) -> np.ndarray:
         """(3p, 3p) compliance W of the given surface nodes over the next step of size ``dt``.
 
         ``surface_node_ids``: p distinct local surface-node ids (rows of :meth:`surface_positions`).
@@ -492,7 +492,8 @@ class TissueModel:
         size.  Each column is a pair of triangular solves with the integrator's factorisation
         (made exact by iterative refinement when it lags the tangent); with the explicit or the
         Jacobi integrator a factorisation of the same implicit matrix is built once per dt.
-        Does not change the model's results.
+        ``tolerance``: relative residual of those solves (default: the model's cg_tolerance; a
+        local model between frames can take a looser one). Does not change the model's results.
         """
         if dt is None:
             dt = self.last_dt
@@ -539,7 +540,7 @@ class TissueModel:
             rhs = np.zeros((pc.free_dofs.size, free_cols.size))
             rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
             x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent,
-                                        tolerance=float(self.params.cg_tolerance))
+                                        tolerance=float(self.params.cg_tolerance if tolerance is None else tolerance))
             x = x[free_index[dofs[free_cols]], :]
         w = np.zeros((dofs.size, dofs.size))
         w[np.ix_(free_cols, free_cols)] = (h * h) * x
