@@ -150,6 +150,13 @@ class ContactParameters:
         if not isinstance(self.passivity_controller, (bool, np.bool_)):
             raise ContactParameterError(
                 f"passivity_controller must be True or False (got {self.passivity_controller!r})")
+        if self.passivity_controller and self.tool != "probe":
+            # Its damping -alpha v acts on a haptic device's probe (a mass the operator holds). On a
+            # catheter centerline it brakes every point of a kinematic chain that does not respond to
+            # it: measured on aaa_endovascular, the rendered force ran away to 1.3 kN.
+            raise ContactParameterError(
+                "passivity_controller = true needs tool = 'probe' (the haptic device's point): with tool = "
+                f"{self.tool!r} there is no device to damp; set passivity_controller = false")
         return self
 
 
@@ -204,20 +211,24 @@ def _warm_up(interpolation) -> None:
     pos = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.01, 0.01, 0.0]])
     tri = np.array([[0, 1, 2], [1, 3, 2]])
     W = np.eye(12) * 1e-4
+    centerline = [np.array([[0.003, 0.003, 0.004], [0.003, 0.003, 0.002], [0.003, 0.003, -0.0005 * k]])
+                  for k in range(3)]
+    centerline += [np.array([[0.003, 0.003, 0.004], [0.003, 0.004, 0.001], [0.003, 0.003, -0.001]])] * 3
     for policy in LOCAL_POLICIES:
         for detection in DETECTIONS:
-            params = ContactParameters(local_model=policy, detection=detection, interpolation=interpolation,
-                                       passivity_controller=True, margin=0.003)
-            model = ContactModel(tri, 4, 3, params)
-            model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
-            for k in range(3):
-                tool = np.array([[0.003, 0.003, 0.004], [0.003, 0.003, 0.002], [0.003, 0.003, -0.0005 * k]])
-                model.step(k * 1e-3, 1e-3, tool)
-            model.set_tissue_frame(0.01, pos + [0.0, 0.0, 0.001], np.full_like(pos, 0.1),
-                                   compliance=W, compliance_nodes=np.arange(4))
-            for k in range(3, 6):
-                model.step(k * 1e-3, 1e-3, np.array([[0.003, 0.003, 0.004], [0.003, 0.004, 0.001],
-                                                     [0.003, 0.003, -0.001]]))
+            # a catheter centerline, and a device probe with the passivity controller on
+            for tool, passivity, path in (("centerline", False, centerline),
+                                          ("probe", True, [points[-1:] for points in centerline])):
+                params = ContactParameters(local_model=policy, detection=detection, interpolation=interpolation,
+                                           passivity_controller=passivity, tool=tool, margin=0.003)
+                model = ContactModel(tri, 4, len(path[0]), params)
+                model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
+                for k in range(3):
+                    model.step(k * 1e-3, 1e-3, path[k])
+                model.set_tissue_frame(0.01, pos + [0.0, 0.0, 0.001], np.full_like(pos, 0.1),
+                                       compliance=W, compliance_nodes=np.arange(4))
+                for k in range(3, 6):
+                    model.step(k * 1e-3, 1e-3, path[k])
 
 
 class ContactModel:
@@ -610,7 +621,8 @@ class ContactModel:
                 "stored: the rendered contact is active (a sampled-data instability); lower stiffness or damping, "
                 "raise the device damping (passive while b_dev > K T / 2 + |B|)%s",
                 created, t, self._peak_potential,
-                "" if self.params.passivity_controller else ", or set passivity_controller = true")
+                ", or set passivity_controller = true" if self.params.tool == "probe"
+                and not self.params.passivity_controller else "")
 
     # ------------------------------------------------------------------ state (FMU rollback)
     _STATELESS = ("tree", "triangles", "params", "n_surface", "n_tool", "radius", "n_segments", "_law",
