@@ -144,7 +144,7 @@ def report(title: str, samples: dict[str, np.ndarray]) -> float:
 def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_hosting_") as tmp:
         contact = build_fmu("Contact", Path(tmp))
-        signal = build_fmu_from_spec(FmuSpec("Signal", "synthetic_fmu", "synthetic_fmu.fmu", "SignalSlave",
+        signal = build_fmu_from_spec(FmuSpec("Signal", "synthetic_fmu", "fmu:SIGNAL",
                                              source_root=REPO / "tests" / "synthetic"), Path(tmp))
         contact_samples = run(contact, lambda k: {"tool_positions": tool(k)}, CONTACT_OUTPUTS, with_fmpy=True)
         signal_samples = run(signal, lambda k: {}, ["y", "y3", "count", "odd"], with_fmpy=False,

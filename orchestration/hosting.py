@@ -425,8 +425,8 @@ class InProcessFmu:
     def _check(self, call: str, status: int, mark: int) -> None:
         """Raise unless ``status`` is OK/Warning and no error-level message was logged since ``mark``.
 
-        The project's slaves log a rejected value with fmi3Error but return OK from the setter
-        (the following fmi3DoStep would fail): reporting it at the call that caused it is clearer.
+        An FMU that logs an error but returns OK from a call is reported at that call, where the
+        cause is, rather than at a later one.
         """
         if status > FMI_WARNING:
             self._failed = True

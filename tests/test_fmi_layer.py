@@ -147,6 +147,8 @@ def test_a_keyboard_interrupt_inside_a_step_is_an_error_and_reset_recovers(synth
         fmu.slave.doStep(H, H)
         fmu.expect_step_error(2 * H, H, "KeyboardInterrupt")  # not raised into this process
         fmu.expect_step_error(2 * H, H, "Error mode", "KeyboardInterrupt")
+        # a refused call does not replace the reason the instance went into the Error mode
+        fmu.expect_step_error(2 * H, H, "Error mode after: Faulty instance", "KeyboardInterrupt")
         fmu.slave.reset()
         fmu.initialize()
         fmu.slave.doStep(0.0, H)

@@ -60,7 +60,7 @@ def _outputs(stdout: str) -> dict[str, np.ndarray]:
     values = {}
     for line in stdout.splitlines():
         name, *numbers = line.split()
-        if name != "state":
+        if name not in ("state", "misuse"):  # the replay and misuse verdicts
             values[name] = np.array([float(x) for x in numbers])
     return values
 
@@ -97,6 +97,19 @@ def test_state_saved_serialized_and_replayed_bit_identically_in_a_c_host(host, f
     result = _run(host, _arguments(name, fmus[name], tmp_path / "run", state=True))
     assert result.returncode == 0, result.stderr[-2000:]
     assert "state replay: identical" in result.stdout
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_illegal_calls_and_a_nan_input_are_refused_and_the_host_exits_normally(host, fmus, name, tmp_path):
+    """fmi3DoStep and fmi3Terminate before initialization, and a NaN input halfway, each return
+    fmi3Error with a reason; the run then goes on, frees the instance and exits with status 0."""
+    result = _run(host, _arguments(name, fmus[name], tmp_path / "run") + ["--misuse"])
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "misuse refused: 3 of 3" in result.stdout
+    assert "illegal call sequence" in result.stderr and "only finite numbers" in result.stderr
+    c_values = _outputs(result.stdout)  # the refused calls changed nothing
+    for port, expected in _fmpy_outputs(name, fmus[name]).items():
+        np.testing.assert_array_equal(c_values[port], expected, err_msg=f"{name}.{port}")
 
 
 @pytest.mark.slow

@@ -129,7 +129,9 @@ static void log_message(Instance *inst, fmi3Status status, const char *format, .
     vsnprintf(message, sizeof message, format, args);
     va_end(args);
     unsigned category = status >= fmi3Error ? LOG_ERROR : status == fmi3Warning ? LOG_WARNING : LOG_EVENTS;
-    if (status >= fmi3Error) snprintf(inst->last_error, sizeof inst->last_error, "%s", message);
+    /* the reason an instance went into the Error mode is kept: calls refused there do not replace it */
+    if (status >= fmi3Error && inst->mode != M_ERROR)
+        snprintf(inst->last_error, sizeof inst->last_error, "%s", message);
     if (!inst->logger || !inst->logging_on || !(inst->log_categories & category)) return;
     const char *name = category == LOG_ERROR ? LOG_CATEGORY_NAMES[0]
                      : category == LOG_WARNING ? LOG_CATEGORY_NAMES[1] : LOG_CATEGORY_NAMES[2];
@@ -251,7 +253,7 @@ static const char BOOTSTRAP[] =
     "        except BaseException:\n"
     "            del sys.modules[name]\n"
     "            raise\n"
-    "    return module.instantiate(resources, model_identifier, token, bool(started), *args)\n";
+    "    return module.instantiate(resources, model_identifier, token, *args)\n";
 
 /* Call a method of the model object; its result (new reference), or NULL with the reason logged.
  * The GIL is taken for the call only. */

@@ -213,7 +213,7 @@ class Values:
         vr = instance.references.get(name)
         if vr is None:
             raise AttributeError(f"{instance.model_name} has no variable {name!r}") from None
-        return instance.read(vr)
+        return instance.read_string(vr)
 
     def __setattr__(self, name, value):
         scalar = _scalars_of(self).get(name)
@@ -228,7 +228,7 @@ class Values:
         vr = instance.references.get(name)
         if vr is None:
             raise AttributeError(f"{instance.model_name} has no variable {name!r}")
-        instance.write(vr, value)
+        instance.write_string(vr, value)
 
     def set_count(self, name: str) -> int:
         """How often the importer has set ``name`` (e.g. to tell whether an optional input is used)."""
@@ -339,24 +339,15 @@ class RuntimeInstance:
             if status != 0:
                 raise MemoryError(f"the FMI layer could not register {v.name}")
         self.values._rebind()
+        self._time = self.buffers[self.references["time"]]  # written every step
 
-    def read(self, vr: int):
-        v = self.variables[vr]
-        if v.type == "String":
-            raw = self._get_string(self._c, vr, 0)
-            return raw.decode() if raw is not None else ""
-        if v.shape:
-            return self.views[vr]
-        return self.buffers[vr][0].item()
+    # Strings live in the C layer (numbers in the buffers, reached through Values).
+    def read_string(self, vr: int) -> str:
+        raw = self._get_string(self._c, vr, 0)
+        return raw.decode() if raw is not None else ""
 
-    def write(self, vr: int, value) -> None:
-        v = self.variables[vr]
-        if v.type == "String":
-            self._set_string(self._c, vr, 0, str(value).encode())
-        elif v.shape:
-            self.views[vr][...] = value
-        else:
-            self.buffers[vr][0] = value
+    def write_string(self, vr: int, value) -> None:
+        self._set_string(self._c, vr, 0, str(value).encode())
 
     # -- logging ---------------------------------------------------------------------------------------
     def log(self, status: int, message: str) -> None:
@@ -384,7 +375,7 @@ class RuntimeInstance:
             if not (math.isfinite(step) and step > 0):
                 raise ValueError(f"internal_step must be a positive number of seconds (got {step})")
             self.adapter = None
-            self.buffers[self.references["time"]][0] = start_time
+            self._time[0] = start_time
             self.adapter = self.declaration.adapter(self.values)
             return step
         except BaseException as exc:
@@ -410,7 +401,7 @@ class RuntimeInstance:
             return ERROR, done
         finally:
             self._router.current.instance = None
-        self.buffers[self.references["time"]][0] = t + h
+        self._time[0] = t + h
         return (WARNING if self.warnings else OK), done
 
     def terminate(self) -> None:
@@ -435,7 +426,7 @@ class RuntimeInstance:
 
     # -- FMU state ----------------------------------------------------------------------------------------
     def get_state(self) -> _Snapshot:
-        strings = {vr: self.read(vr) for vr, v in enumerate(self.variables) if v.type == "String"}
+        strings = {vr: self.read_string(vr) for vr, v in enumerate(self.variables) if v.type == "String"}
         buffers = [None if v.type == "String" else self.buffers[vr].copy() for vr, v in enumerate(self.variables)]
         if self.adapter is None:
             return _Snapshot(buffers, strings, self.set_counts.copy(), None, None, ())
@@ -451,7 +442,7 @@ class RuntimeInstance:
         self._allocate(reset=False)
         for vr, v in enumerate(self.variables):
             if v.type == "String":
-                self.write(vr, snapshot.strings[vr])
+                self.write_string(vr, snapshot.strings[vr])
             else:
                 self.buffers[vr][:] = snapshot.buffers[vr]
         self.set_counts[:] = snapshot.set_counts
@@ -511,8 +502,8 @@ def _load_package(resources: Path, unique: str, package: str):
     return module
 
 
-def instantiate(resources: str, model_identifier: str, token: str, started_interpreter: bool, instance_name: str,
-                c_instance: int, register: int, counters: int, log: int, get_string: int, set_string: int):
+def instantiate(resources: str, model_identifier: str, token: str, instance_name: str, c_instance: int,
+                register: int, counters: int, log: int, get_string: int, set_string: int):
     resources = Path(resources)
     meta = json.loads((resources / "fmu.json").read_text())
     if token != meta["instantiation_token"]:

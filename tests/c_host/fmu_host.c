@@ -9,7 +9,9 @@
  *   --input NAME:COUNT=VALUE   set COUNT Float64 values of input NAME to VALUE*(1 + k/STEPS) at step k
  *   --output NAME:COUNT        print the COUNT Float64 values of NAME after the last step (%.17g)
  *   --state                    save, serialize, restore and replay the second half
- * Exit status 0 when every call succeeded.
+ *   --misuse                   also make calls that must be refused (fmi3DoStep and fmi3Terminate before
+ *                              initialization, a NaN input halfway) and check they return fmi3Error
+ * Exit status 0 when every call succeeded and every misuse was refused.
  */
 #include <dlfcn.h>
 #include <errno.h>
@@ -166,10 +168,12 @@ int main(int argc, char **argv) {
     long steps = strtol(argv[3], NULL, 10);
     double h = strtod(argv[4], NULL);
     Port inputs[MAX_PORTS], outputs[MAX_PORTS];
-    int n_inputs = 0, n_outputs = 0, with_state = 0;
+    int n_inputs = 0, n_outputs = 0, with_state = 0, misuse = 0;
     for (int i = 5; i < argc; i++) {
         if (strcmp(argv[i], "--state") == 0) {
             with_state = 1;
+        } else if (strcmp(argv[i], "--misuse") == 0) {
+            misuse = 1;
         } else if (i + 1 < argc && (strcmp(argv[i], "--input") == 0 || strcmp(argv[i], "--output") == 0)) {
             int is_input = argv[i][2] == 'i';
             Port *port = is_input ? &inputs[n_inputs++] : &outputs[n_outputs++];
@@ -219,6 +223,13 @@ int main(int argc, char **argv) {
     fmi3Instance instance = fmi3InstantiateCoSimulation("c_host", token, resources, fmi3False, fmi3True, fmi3False,
                                                         fmi3False, NULL, 0, NULL, logger, NULL);
     if (!instance) die("fmi3InstantiateCoSimulation failed", NULL);
+    int refused = 0; /* errors this host provoked on purpose, and the FMU refused */
+    if (misuse) {
+        fmi3Boolean event = 0, terminate = 0, early = 0;
+        fmi3Float64 last = 0.0;
+        refused += fmi3DoStep(instance, 0.0, h, fmi3True, &event, &terminate, &early, &last) == fmi3Error;
+        refused += fmi3Terminate(instance) == fmi3Error;
+    }
     CHECK(fmi3EnterInitializationMode(instance, fmi3False, 0.0, 0.0, fmi3False, 0.0));
     CHECK(fmi3ExitInitializationMode(instance));
 
@@ -235,6 +246,12 @@ int main(int argc, char **argv) {
                 for (size_t j = 0; j < inputs[i].count; j++)
                     inputs[i].buffer[j] = inputs[i].value * (1.0 + (double)k / (double)steps);
                 CHECK(fmi3SetFloat64(instance, &inputs[i].vr, 1, inputs[i].buffer, inputs[i].count));
+            }
+            if (misuse && pass == 0 && k == half && n_inputs > 0) {
+                double saved = inputs[0].buffer[0];
+                inputs[0].buffer[0] = 0.0 / 0.0; /* NaN: refused, and nothing changes */
+                refused += fmi3SetFloat64(instance, &inputs[0].vr, 1, inputs[0].buffer, inputs[0].count) == fmi3Error;
+                inputs[0].buffer[0] = saved;
             }
             fmi3Boolean event = 0, terminate = 0, early = 0;
             fmi3Float64 last = 0.0;
@@ -281,5 +298,8 @@ int main(int argc, char **argv) {
     free(description);
     for (int i = 0; i < n_inputs; i++) free(inputs[i].buffer);
     for (int i = 0; i < n_outputs; i++) free(outputs[i].buffer);
-    return failures ? 4 : 0;
+    int expected = misuse ? (n_inputs > 0 ? 3 : 2) : 0;
+    if (misuse) printf("misuse refused: %d of %d\n", refused, expected);
+    /* the logger counted the provoked errors too: only unexpected ones fail the run */
+    return failures - refused != 0 || refused != expected ? 4 : 0;
 }
