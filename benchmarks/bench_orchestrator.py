@@ -35,7 +35,7 @@ def direct_loop(duration: float) -> float:
     # The scene's own settings, so that both sides do the same work.
     scene = load_scene("aaa_endovascular").components
     tp, cp, kp = (scene[n].parameters for n in ("tissue", "catheter", "contact"))
-    operator = scene["operator"].block
+    operator = scene["operator"].new_block()
 
     def operator_insertion(t: float) -> float:
         return float(operator.evaluate(t)["insertion"][0])
@@ -100,7 +100,7 @@ def main() -> None:
     import catheter_fmu.model  # noqa: F401
     import haptic_fmu.model  # noqa: F401
     import tissue_fmu.model  # noqa: F401
-    from orchestration.cli import ensure_fmus_built
+    from orchestration.build import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
     orchestrated(0.1, "in-process")  # warm the numba cache and the FMU extraction path

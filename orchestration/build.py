@@ -259,3 +259,68 @@ def fmu_is_stale(name: str, dest: Path = DEFAULT_FMU_DIR) -> bool:
     sources = list((SRC / spec.package).rglob("*.py")) + [p for p in LAYER.rglob("*") if p.is_file()]
     newest = max(p.stat().st_mtime for p in sources)
     return newest > fmu.stat().st_mtime
+
+
+def ensure_fmus_built(quiet: bool = False) -> None:
+    """Build the project's FMUs into fmus/ when missing or older than their sources, then warm the
+    numba cache their kernels compile into, so that a run compiles nothing while it is timed."""
+    for name in available_fmus():
+        if fmu_is_stale(name):
+            if not quiet:
+                print(f"building fmus/{name}.fmu ...", flush=True)
+            build_fmu(name)
+    warm_numba_cache(quiet)
+
+
+def _numba_cache_root() -> Path:
+    return Path(os.environ.get("AAA_COSIM_NUMBA_CACHE", Path.home() / ".cache" / "aaa-cosim" / "numba"))
+
+
+def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
+    """Compile the FMUs' kernels into the numba cache by running the default scene briefly.
+
+    The FMUs import their packages under names of their own and cache compiled kernels by file
+    content (``numba_cache``), so a short run in a fresh interpreter compiles exactly what later
+    runs load. Done once per set of FMUs (a stamp in the cache folder); returns True if it ran.
+    """
+    fmus = sorted(Path(dest).glob("*.fmu"))
+    if not fmus:
+        return False
+    digest = hashlib.sha256(b"".join(p.name.encode() + p.read_bytes() for p in fmus)).hexdigest()[:16]
+    root = _numba_cache_root()
+    stamp = root / f"warmed-{digest}"
+    if stamp.exists():
+        return False
+    if not quiet:
+        print("compiling the FMUs' numba kernels (once per build) ...", flush=True)
+    code = ("import sys, tempfile; from orchestration.build import _warm_run; sys.exit(_warm_run())")
+    result = subprocess.run([sys.executable, "-c", code], cwd=str(REPO_ROOT), capture_output=True, text=True)
+    if result.returncode != 0:  # a warm-up failure only costs time later: say so, do not stop
+        logger.warning("warming the numba cache failed (runs will compile their kernels): %s",
+                       (result.stderr or result.stdout).strip()[-2000:])
+        return False
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(datetime.datetime.now().isoformat())
+    except OSError as exc:
+        logger.warning("cannot write %s: %s", stamp, exc)
+    return True
+
+
+#: The part of the default scene the warm-up runs: past the catheter's first contact with the sac wall
+#: (about 1.5 s), so every kernel of the default run (contact response, compliance, ETMM tangent) compiles.
+WARM_UP_DURATION = 1.8
+
+
+def _warm_run() -> int:
+    """The warm-up itself (in a fresh interpreter): the default scene, every FMU in this process."""
+    from .master import run_scene
+    from .scene import load_scene
+
+    scene = load_scene("aaa_endovascular", {"duration": WARM_UP_DURATION})
+    with tempfile.TemporaryDirectory(prefix="aaa_cosim_warm_") as tmp:
+        summary, _ = run_scene(scene, tmp, hosting="in-process", progress=False, plots=False, vtu=False)
+    if summary["status"] != "completed":
+        print(summary["error"], file=sys.stderr)
+        return 1
+    return 0

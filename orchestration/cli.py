@@ -30,17 +30,6 @@ def _cmd_build(args) -> int:
     return EXIT_OK
 
 
-def ensure_fmus_built(quiet: bool = False) -> None:
-    """Build the project's FMUs into fmus/ when missing or older than their sources."""
-    from .build import available_fmus, build_fmu, fmu_is_stale
-
-    for name in available_fmus():
-        if fmu_is_stale(name):
-            if not quiet:
-                print(f"building fmus/{name}.fmu ...", flush=True)
-            build_fmu(name)
-
-
 def parse_assignments(items: list[str]) -> dict:
     """``["contact.stiffness=800", "scene.duration=2"]`` -> typed overrides (TOML value syntax)."""
     import tomllib
@@ -88,7 +77,7 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .build import BuildError
+    from .build import BuildError, ensure_fmus_built
     from .master import run_scene
 
     try:
@@ -109,20 +98,31 @@ def _cmd_run(args) -> int:
         print(f"running {scene.name} ({scene.description or scene.path}) for "
               f"{float(args.duration if args.duration else scene.duration):g} s, "
               f"{args.hosting or scene.hosting} ...", flush=True)
-    summary, text = run_scene(scene, out, hosting=args.hosting, realtime=args.realtime or None,
-                              progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
-    if not args.quiet or summary["status"] != "completed":
+    try:
+        summary, text = run_scene(scene, out, hosting=args.hosting, realtime=args.realtime or None,
+                                  progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
+    except ValueError as exc:  # a --duration that does not fit the steps
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if not args.quiet or summary["status"] not in ("completed", "terminated"):
         print(text)
-    if summary["status"] != "completed":
+    if summary["status"] not in ("completed", "terminated"):
         print(f"error: {summary['error']}\nresults up to the failure are in {out}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 
 
 def _cmd_study(args) -> int:
+    from .build import BuildError, ensure_fmus_built
     from .studies import run_study
 
-    return run_study(args)
+    try:
+        ensure_fmus_built(args.quiet)
+    except BuildError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    return run_study(args.name, out=args.out, quick=args.quick, workers=args.workers, scheduler=args.scheduler,
+                     fresh=args.fresh, quiet=args.quiet)
 
 
 def main(argv: list[str] | None = None) -> int:

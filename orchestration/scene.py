@@ -18,6 +18,7 @@ a step given as ``0.001`` is 1/1000, ``"1/30"`` is 1/30.
 from __future__ import annotations
 
 import logging
+import math
 import tomllib
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -25,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import transitions as tr
 from .ports import NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo, read_fmu
 
 logger = logging.getLogger(__name__)
@@ -33,7 +35,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 SCENE_DIR = REPO_ROOT / "scenes"
 FMU_DIR = REPO_ROOT / "fmus"
 
-TRANSITIONS = ("hold", "interpolate", "extrapolate", "average")
+TRANSITIONS = tuple(tr.REGISTRY)
 ORDERINGS = ("gauss-seidel", "jacobi")
 HOSTINGS = ("in-process", "out-of-process")
 
@@ -67,8 +69,14 @@ class ComponentSpec:
     table: dict = field(default_factory=dict)   # blocks: their TOML table
     ports: dict[str, PortInfo] = field(default_factory=dict)
     description: FmuDescription | None = None
-    block: object = None                        # blocks: the constructed block (sources are stateless)
+    base_dir: Path | None = None                # blocks: where their relative paths start
     hosting: str | None = None                  # FMUs: "in-process" | "out-of-process" (None: the scene's)
+
+    def new_block(self):
+        """A fresh instance of a block or source (each run gets its own: a scene is data)."""
+        from .blocks import make_block
+
+        return make_block(self.name, self.table, self.base_dir)
 
     @property
     def is_fmu(self) -> bool:
@@ -135,7 +143,7 @@ def parse_time(value, where: str, problems: list[str], *, allow_zero: bool = Fal
         if isinstance(value, (int, float)):
             if not np.isfinite(value):
                 raise ValueError
-            result = Fraction(repr(float(value))) if isinstance(value, float) else Fraction(value)
+            result = float_time(value) if isinstance(value, float) else Fraction(value)
         elif isinstance(value, str):
             result = Fraction(value.strip())
         else:
@@ -147,6 +155,17 @@ def parse_time(value, where: str, problems: list[str], *, allow_zero: bool = Fal
         problems.append(f"{where}: must be positive (got {value!r} s)")
         return None
     return result
+
+
+def float_time(value: float) -> Fraction:
+    """The time a float means: 0.001 is 1/1000, and 0.03333333333333333 (1/30 rounded, as model
+    descriptions write it) is 1/30, the simple ratio whose nearest float it is."""
+    exact = Fraction(repr(value))
+    if exact.denominator > 10**6:
+        simple = exact.limit_denominator(10**6)
+        if float(simple) == value:
+            return simple
+    return exact
 
 
 def _parse_endpoint(text, where: str, problems: list[str]) -> tuple[str, str] | None:
@@ -253,6 +272,10 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     if not components:
         problems.append("the scene has no [fmu.<name>] or [block.<name>]: nothing to simulate")
 
+    if duration is not None:
+        problem = duration_problem(components.values(), duration)
+        if problem:
+            problems.append(f"[scene] duration: {problem}")
     connections = _load_connections(data.get("connection", []), components, problems, declared)
     _check_algebraic_loops(connections, components, problems)
     record, surfaces, plots = _load_record(data.get("record", {}), components, problems)
@@ -375,7 +398,7 @@ def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, o
         if not continuous and step is None:
             step = parse_time(getattr(block, "step", None), f"{where} step", problems)
         components[name] = ComponentSpec(name=name, kind=str(table.get("kind")), step=step, table=table,
-                                         ports=dict(block.ports), block=block)
+                                         ports=dict(block.ports), base_dir=base_dir)
 
 
 def _load_connections(items, components: dict[str, ComponentSpec], problems: list[str],
@@ -449,12 +472,13 @@ def _load_connections(items, components: dict[str, ComponentSpec], problems: lis
         rates_known = not (out_spec.is_fmu and out_spec.step is None) and not (in_spec.is_fmu and in_spec.step is None)
         rates_differ = (rates_known and not out_spec.is_continuous and not is_parameter and out_spec.step != in_spec.step)
         if rates_differ and transition is None:
+            choices = " | ".join(f'"{name}"' for name in tr.REGISTRY)
             problems.append(f"{where}: connects a {_rate(out_spec)} output to a {_rate(in_spec)} input; name the rate "
-                            f"transition: transition = \"hold\" | \"interpolate\" | \"extrapolate\" | \"average\"")
-        if transition == "average" and not out_spec.is_continuous and out_spec.step and in_spec.step \
-                and out_spec.step > in_spec.step:
-            problems.append(f"{where} transition: \"average\" means over the fast producer's samples in the consumer's "
-                            "step, but the producer is the slower one; use hold, interpolate or extrapolate")
+                            f"transition: transition = {choices}")
+        if transition is not None and not out_spec.is_continuous:
+            problem = tr.REGISTRY[transition].scene_problem(out_spec.step, in_spec.step)
+            if problem:
+                problems.append(f"{where} transition: {problem}")
         if src[0] == dst[0]:
             problems.append(f"{where}: connects a component to itself")
         connections.append(ConnectionSpec(src[0], src[1], dst[0], dst[1], transition, ordering, index))
@@ -480,6 +504,30 @@ def _size_hint(spec: ComponentSpec, in_port: PortInfo, out_port: PortInfo) -> st
                 fix = ", ".join(f"{n} = {out_port.shape[i]}" for i, n in enumerate(names) if i < len(out_port.shape))
                 return f"; set {spec.name} parameter {fix}"
     return ""
+
+
+def duration_problem(components, duration: Fraction) -> str | None:
+    """Why a run of ``duration`` cannot end exactly on every stepped component's grid, or None.
+
+    A run ends where every component has made whole steps: a duration that is not a multiple of a
+    step would overshoot it, so it is refused (with the nearest durations that work).
+    """
+    steps = [c.step for c in components if c.step is not None]
+    if not steps:
+        return None
+    period = Fraction(0)
+    for step in steps:  # the lcm of rationals: lcm of numerators over gcd of denominators
+        period = step if period == 0 else Fraction(math.lcm(period.numerator, step.numerator),
+                                                     math.gcd(period.denominator, step.denominator))
+    if (duration / period).denominator == 1:
+        return None
+    below = (duration // period) * period
+    options = [d for d in (below, below + period) if d > 0]
+    offending = ", ".join(f"{c.name} ({c.step} s)" for c in components
+                          if c.step is not None and (duration / c.step).denominator != 1)
+    return (f"{float(duration):g} s is not a whole number of steps of {offending}; a run ends on every "
+            f"component's grid: use a multiple of {period} s, e.g. "
+            + " or ".join(f"{float(d):.6g}" for d in options))
 
 
 def _check_algebraic_loops(connections: list[ConnectionSpec], components: dict, problems: list[str]) -> None:

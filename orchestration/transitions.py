@@ -106,3 +106,70 @@ def average(history: SampleHistory, tau: int, window: int) -> np.ndarray:
         total += history.values[k]
     total /= (i - j + 1)
     return total
+
+
+# -- the registry: one class per transition, used by the scene checks and by the master -----------
+class Transition:
+    """A rate transition on one connection: the value its consumer reads at tick ``tau``.
+
+    A subclass gives ``name`` (the scene's ``transition = "..."``), ``value`` and, where the
+    transition only makes sense for some rates, ``scene_problem``. ``keyed`` transitions return
+    the tick of the sample they pass on, so the master sets the input only when that changes.
+    """
+
+    name: str = ""
+    summary: str = ""
+    keyed: bool = False
+
+    def __init__(self, history: SampleHistory, consumer_step: int):
+        self.history = history
+        self.consumer_step = int(consumer_step)
+
+    def value(self, tau: int) -> tuple[np.ndarray, int | None]:
+        raise NotImplementedError
+
+    @classmethod
+    def scene_problem(cls, producer_step, consumer_step) -> str | None:
+        """Why this transition cannot join these rates (steps in seconds), or None."""
+        return None
+
+
+class Hold(Transition):
+    name, summary, keyed = "hold", "the latest sample", True
+
+    def value(self, tau):
+        return hold(self.history, tau)
+
+
+class Interpolate(Transition):
+    name, summary = "interpolate", "linear between the samples around tau - H (one producer step late)"
+
+    def value(self, tau):
+        return interpolate(self.history, tau), None
+
+
+class Extrapolate(Transition):
+    name, summary = "extrapolate", "first order from the latest two samples"
+
+    def value(self, tau):
+        return extrapolate(self.history, tau), None
+
+
+class Average(Transition):
+    name, summary = "average", "the mean of the samples within the consumer's step"
+
+    def value(self, tau):
+        return average(self.history, tau, self.consumer_step), None
+
+    @classmethod
+    def scene_problem(cls, producer_step, consumer_step):
+        if producer_step is not None and consumer_step is not None and producer_step > consumer_step:
+            return ("\"average\" means over the fast producer's samples in the consumer's step, but the producer "
+                    "is the slower one; use hold, interpolate or extrapolate")
+        return None
+
+
+#: name -> class; a new transition is one class added here.
+REGISTRY: dict[str, type[Transition]] = {cls.name: cls for cls in (Hold, Interpolate, Extrapolate, Average)}
+#: what a connection between equal rates uses when the scene names none
+DEFAULT = "hold"

@@ -130,7 +130,7 @@ def test_integer_and_boolean_ports_cross_exactly(synthetic_fmus, tmp_path):
 
 def test_initialization_propagates_outputs_before_the_first_step(synthetic_fmus, tmp_path):
     """Echo's first step sees y(0) = a, set during initialization (not Echo's start value)."""
-    data = signal_echo_scene(synthetic_fmus, "1/30", 0.01, "hold", "jacobi", duration=0.02)
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.01, "hold", "jacobi", duration=0.1)  # a whole number of both steps
     run(data, tmp_path)
     _, cols = read_stream(tmp_path / "results" / "echo.csv")
     assert cols["last_u"][1] == A

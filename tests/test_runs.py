@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def built(tissue_fmu, contact_fmu, catheter_fmu):
     """The shipped scenes use fmus/: build them from this checkout first."""
-    from orchestration.cli import ensure_fmus_built
+    from orchestration.build import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 

@@ -78,7 +78,7 @@ def test_pareto_front_against_brute_force():
 
 @pytest.fixture(scope="module")
 def quick_study(tmp_path_factory):
-    from orchestration.cli import ensure_fmus_built
+    from orchestration.build import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
     out = tmp_path_factory.mktemp("study_tradeoff")

@@ -15,25 +15,27 @@ from pathlib import Path
 STUDIES = ("tradeoff", "stability", "extremes")
 
 
-def run_study(args) -> int:
-    """CLI entry: ``args`` has name, out, quick, workers, scheduler, fresh, quiet."""
-    from ..cli import ensure_fmus_built
+def run_study(name: str, *, out: Path | str | None = None, quick: bool = False, workers: int | None = None,
+              scheduler: str | None = None, fresh: bool = False, quiet: bool = False) -> int:
+    """Run study ``name`` into ``out`` (default results/study_<name>); returns an exit code.
 
-    ensure_fmus_built(args.quiet)
-    module = importlib.import_module(f"{__name__}.{args.name}")
-    out = Path(args.out) if args.out else Path("results") / f"study_{args.name}"
+    The FMUs must be built (``orchestration.build.ensure_fmus_built``).
+    """
+    if name not in STUDIES:
+        raise ValueError(f"no study {name!r}; studies: {', '.join(STUDIES)}")
+    module = importlib.import_module(f"{__name__}.{name}")
+    out = Path(out) if out else Path("results") / f"study_{name}"
     finished = out / "points.jsonl"
-    if getattr(args, "fresh", False) and finished.exists():
+    if fresh and finished.exists():
         # Resuming keys points by their parameters only: after a change to the code, start over.
         finished.rename(finished.with_suffix(".jsonl.old"))
     try:
-        report = module.run(out, quick=args.quick, workers=args.workers, scheduler=args.scheduler,
-                            progress=not args.quiet)
+        report = module.run(out, quick=quick, workers=workers, scheduler=scheduler, progress=not quiet)
     except KeyboardInterrupt:
         print(f"interrupted: finished points are kept in {out}; run the same command again to resume",
               file=sys.stderr)
         return 1
-    if not args.quiet:
+    if not quiet:
         print(report.read_text() if hasattr(report, "read_text") else report)
     print(f"study results: {out}/")
     return 0

@@ -1,0 +1,480 @@
+"""The multirate co-simulation algorithm: integer scheduling, stepping and value routing.
+
+Time is exact. Every step and the duration are rationals; the algorithm counts integer *ticks* of
+``1 / L`` seconds, ``L`` the least common multiple of their denominators (1/30 s and 1 ms give
+ticks of 1/3000 s: the tissue steps 100 ticks, the haptic loop 3). An FMU is called with
+``t = tick / L`` (correctly rounded), never with a sum of floats.
+
+Which value a consumer sees. A consumer stepping ``[t, t + h]`` evaluates each input connection at
+tick ``tau``: ``tau = t`` for a ``jacobi`` connection (the producer's samples up to the start of the
+step) and ``tau = t + h`` for ``gauss-seidel`` (up to the end: the producer steps first). The rate
+transition (:mod:`.transitions`) turns the producer's samples at ticks ``<= tau`` into the value.
+So a step can start as soon as each producer has reached the last of its grid points ``<= tau``;
+that is the only scheduling rule, and the values a component receives depend on nothing else.
+Hence the result is the same whether components step one after another in this process or
+concurrently in worker processes: a ``jacobi`` connection from the 30 Hz tissue lets its 33 ms
+step run while the 1 kHz loop goes on.
+
+The schedule. Which call comes next is a function of the components' tick counts relative to
+the slowest one, of the phase within the hyperperiod and of which steps are in flight; the
+decision is computed once per such state and then looked up (a 1 kHz loop beside a 30 Hz tissue
+has 300 ticks of hyperperiod and a few hundred states), so the per-tick work is a table lookup,
+the input routes and the output fan-out precomputed per component. A step of a host with a
+``wait_handle`` (a worker process) is started as soon as it may and collected only when a
+consumer needs it.
+
+Initialization propagates outputs to inputs before the first step: components leave
+initialization mode in the order of their connections (producers first), each receiving the
+initial outputs of those already initialized, including parameters such as the surface triangles.
+
+Observers (:mod:`.observers`) see every step's outputs; the algorithm knows nothing of files,
+statistics or wall-clock pacing.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from fractions import Fraction
+from typing import Callable, Protocol
+
+import numpy as np
+
+from . import transitions as tr
+from .errors import FmuCallError, OrchestrationError
+from .scene import ComponentSpec, ConnectionSpec, Scene
+
+logger = logging.getLogger(__name__)
+
+#: Most schedule states remembered; a pathological rate mix beyond that is decided afresh each time.
+_SCHEDULE_CACHE_LIMIT = 200_000
+
+
+class RunInterrupted(OrchestrationError):
+    """The run was stopped by Ctrl-C or SIGTERM."""
+
+
+class RunTerminated(OrchestrationError):
+    """A component asked to end the simulation (``terminateSimulation`` out of ``fmi3DoStep``)."""
+
+    def __init__(self, component: str, time: float):
+        self.component = component
+        self.time = time
+        super().__init__(f"{component} requested terminateSimulation at t = {time:.6g} s")
+
+
+class Observer(Protocol):
+    """What the algorithm notifies; every method is optional (see :mod:`.observers`).
+
+    ``ports(name)`` lists the ports of a component it reads; it is then notified of that
+    component's steps (``subscribes(component)`` decides otherwise): ``before_step(component,
+    tick)`` and ``stepped(component, tick, outputs)``, the outputs valid only during the call.
+    ``initializing``, ``initialized``, ``started`` and ``finished`` take the algorithm.
+    """
+
+    def ports(self, component: str) -> list[str]: ...
+    def stepped(self, component: "Component", tick: int, outputs: dict[str, np.ndarray]) -> None: ...
+
+
+@dataclass(eq=False)
+class Route:
+    """One incoming connection of a component, resolved for the run."""
+
+    spec: ConnectionSpec
+    port: str
+    jacobi: bool
+    parameter: bool = False                 # set once, at initialization
+    producer: "Component | None" = None     # stepped producer
+    source: object = None                   # continuous source (evaluate(t))
+    history: tr.SampleHistory | None = None
+    transition: tr.Transition | None = None
+    need_offset: int = 0                    # tau - t: 0 for jacobi, the consumer's step for gauss-seidel
+    last_key: object = None
+    last_value: np.ndarray | None = None
+
+
+@dataclass(eq=False)
+class Component:
+    """A stepped component during a run: its host, its grid in ticks, its routes and listeners."""
+
+    spec: ComponentSpec
+    index: int
+    rank: int
+    step: int                               # ticks
+    end: int                                # last tick it reaches
+    host: object = None
+    time: int = 0                           # ticks reached (completed)
+    running: bool = False
+    asynchronous: bool = False              # its host steps in another process
+    steps: int = 0
+    busy: float = 0.0                       # wall seconds inside its calls (or in flight)
+    started_at: float = 0.0
+    routes: list[Route] = field(default_factory=list)
+    observed: list[str] = field(default_factory=list)
+    histories: list[tuple[str, tr.SampleHistory]] = field(default_factory=list)
+    consumers: list[tuple["Component", Route]] = field(default_factory=list)
+    listeners: list[Callable] = field(default_factory=list)     # observers' stepped(comp, tick, outputs)
+    pre_step: list[Callable] = field(default_factory=list)      # observers' before_step(comp, tick)
+    outputs: dict[str, np.ndarray] = field(default_factory=dict)  # the latest, valid until its next step
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+def tick_base(scene: Scene) -> int:
+    """Ticks per second: the lcm of the denominators of every step and of the duration."""
+    base = scene.duration.denominator
+    for comp in scene.components.values():
+        if comp.step is not None:
+            base = math.lcm(base, comp.step.denominator)
+    return base
+
+
+def call(comp: Component, what: str, t: float | None, action):
+    """Run a host call; anything but an FmuCallError becomes one naming the component, call and time."""
+    try:
+        return action()
+    except FmuCallError:
+        raise
+    except (KeyboardInterrupt, RunInterrupted):
+        raise
+    except Exception as exc:
+        raise FmuCallError(comp.name, what, t, f"{type(exc).__name__}: {exc}") from exc
+
+
+class MultirateAlgorithm:
+    """Steps the stepped components of ``scene`` from 0 to ``duration`` (exact) over their hosts.
+
+    ``make_host(spec)`` gives each stepped component its host (the ``ComponentHost`` protocol of
+    :mod:`.hosting`); continuous sources are created per run from their spec. ``observers`` are
+    notified of every step's outputs; ``extra_observed`` names more ports to read after each step.
+    """
+
+    def __init__(self, scene: Scene, duration: Fraction, make_host: Callable[[ComponentSpec], object],
+                 observers: list = (), extra_observed: dict[str, list[str]] | None = None):
+        self.scene = scene
+        self.duration = Fraction(duration)
+        self.base = math.lcm(tick_base(scene), self.duration.denominator)
+        self.end = int(self.duration * self.base)
+        self.make_host = make_host
+        self.observers = list(observers)
+        self.extra_observed = dict(extra_observed or {})
+        self.components: dict[str, Component] = {}
+        self.ordered: list[Component] = []
+        self.sources: dict[str, object] = {}
+        self.stop_reason: str | None = None
+        self._source_cache: dict[str, tuple[int, dict]] = {}
+        self._schedule: dict = {}
+
+    # -- time ------------------------------------------------------------------------------------
+    def seconds(self, tick: int) -> float:
+        # int / int is correctly rounded in Python: the same float as float(Fraction(tick, base))
+        return tick / self.base
+
+    @property
+    def reached(self) -> int:
+        """The tick every component has reached."""
+        return min((c.time for c in self.ordered), default=0)
+
+    # -- setup -----------------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Resolve routes, create and instantiate the hosts, set parameters, enter initialization."""
+        scene = self.scene
+        stepped = [s for s in scene.components.values() if not s.is_continuous]
+        for rank, name in enumerate(initialization_order(scene, [s.name for s in stepped])):
+            spec = scene.components[name]
+            step = int(spec.step * self.base)
+            self.components[name] = Component(spec=spec, index=rank, rank=rank, step=step,
+                                              end=-(-self.end // step) * step)
+        self.ordered = list(self.components.values())
+        for spec in scene.components.values():
+            if spec.is_continuous:
+                self.sources[spec.name] = spec.new_block()
+
+        for conn in scene.connections:
+            target = self.components[conn.target]
+            is_parameter = target.spec.ports[conn.target_port].causality != "input"
+            route = Route(spec=conn, port=conn.target_port, jacobi=conn.ordering == "jacobi", parameter=is_parameter)
+            if conn.source in self.sources:
+                route.source = self.sources[conn.source]
+            else:
+                producer = self.components[conn.source]
+                route.producer = producer
+                if not is_parameter:
+                    route.history = tr.SampleHistory(producer.step)
+                    route.transition = tr.REGISTRY[conn.transition or tr.DEFAULT](route.history, target.step)
+                    producer.histories.append((conn.source_port, route.history))
+                    producer.consumers.append((target, route))
+                    _add(producer.observed, conn.source_port)
+            route.need_offset = 0 if route.jacobi else target.step
+            target.routes.append(route)
+        for observer in self.observers:
+            for comp in self.ordered:
+                wanted = observer.ports(comp.name) if hasattr(observer, "ports") else []
+                for port in wanted:
+                    _add(comp.observed, port)
+                subscribes = observer.subscribes(comp) if hasattr(observer, "subscribes") else bool(wanted)
+                if subscribes and hasattr(observer, "stepped"):
+                    comp.listeners.append(observer.stepped)
+                if subscribes and hasattr(observer, "before_step"):
+                    comp.pre_step.append(observer.before_step)
+        for name, ports in self.extra_observed.items():
+            if name not in self.components:
+                raise OrchestrationError(f"observe: no stepped component {name!r} in the scene")
+            for port in ports:
+                if port not in self.components[name].spec.ports:
+                    raise OrchestrationError(f"observe: {name} has no port {port!r}")
+                _add(self.components[name].observed, port)
+
+        # Hosts, instantiated one after the other (a worker process loads its FMU while the master waits).
+        for comp in self.ordered:
+            comp.host = self.make_host(comp.spec)
+            comp.asynchronous = comp.host.wait_handle() is not None
+        for comp in self.ordered:
+            call(comp, "instantiate", 0.0, comp.host.instantiate)
+        for comp in self.ordered:
+            if comp.spec.parameters:  # structural ones are set in Configuration Mode by the host
+                call(comp, "set parameters", 0.0, lambda c=comp: c.host.set_values(c.spec.parameters))
+            call(comp, "fmi3EnterInitializationMode", 0.0, lambda c=comp: c.host.enter_initialization(0.0))
+
+    def notify(self, hook: str) -> None:
+        """Call ``hook(self)`` on every observer that has it (initializing, initialized, started, finished)."""
+        for observer in self.observers:
+            method = getattr(observer, hook, None)
+            if method is not None:
+                method(self)
+
+    def initialize(self) -> None:
+        """Leave initialization mode producer-first, propagating initial outputs (and parameters)."""
+        self.notify("initializing")
+        done: set[str] = set()
+        for comp in self.ordered:
+            parameters = {}
+            for route in comp.routes:
+                if not route.parameter:
+                    continue
+                producer = route.producer
+                port = route.spec.source_port
+                if producer is None:
+                    value = self._evaluate(route.source, 0)[port]
+                elif producer.name in done:
+                    value = call(producer, "get values", 0.0, lambda p=producer, n=port: p.host.get_values([n]))[port]
+                else:
+                    raise OrchestrationError(f"{route.spec.label}: the parameter's producer {producer.name} is "
+                                             f"initialized after {comp.name}; parameters cannot flow around a loop")
+                parameters[route.port] = _typed(value, comp.spec.ports[route.port])
+            if parameters:
+                call(comp, "set parameters", 0.0, lambda: comp.host.set_values(parameters))
+            input_ports = [r.port for r in comp.routes if not r.parameter]
+            call(comp, "configure", 0.0, lambda: comp.host.configure(input_ports, list(comp.observed)))
+            values = self._input_values(comp, initial=True, done=done)
+            if values:
+                call(comp, "set inputs", 0.0, lambda: comp.host.set_inputs(values))
+            call(comp, "fmi3ExitInitializationMode", 0.0, comp.host.exit_initialization)
+            outputs = call(comp, "get outputs", 0.0, comp.host.get_outputs)
+            self._store(comp, 0, outputs)
+            done.add(comp.name)
+        self.notify("initialized")
+
+    def get_values(self, component: str, names: list[str]) -> dict[str, np.ndarray]:
+        """Values of any readable variables of a component (between steps; not the hot path)."""
+        comp = self.components[component]
+        return call(comp, "get values", self.seconds(comp.time), lambda: comp.host.get_values(list(names)))
+
+    # -- values ----------------------------------------------------------------------------------
+    def _input_values(self, comp: Component, initial: bool = False, done: set | None = None) -> dict:
+        values: dict[str, np.ndarray] = {}
+        t = comp.time
+        for route in comp.routes:
+            if route.parameter:
+                continue
+            tau = t if initial else t + route.need_offset
+            key = None
+            if route.source is not None:
+                if route.last_value is not None and route.source.constant:
+                    continue
+                value = self._evaluate(route.source, tau)[route.spec.source_port]
+            else:
+                if initial and route.producer.name not in done:
+                    continue  # producer not initialized yet (a loop): the start value stands
+                if not route.history.ticks:
+                    continue
+                value, key = route.transition.value(tau)
+            if key is not None:
+                if key == route.last_key:
+                    continue
+                route.last_key = key
+            else:
+                last = route.last_value
+                if last is not None and (value is last or (value.shape == last.shape and (value == last).all())):
+                    continue
+                route.last_value = value
+            values[route.port] = value
+        return values
+
+    def _evaluate(self, source, tau: int) -> dict[str, np.ndarray]:
+        """A source's outputs at tick ``tau``, evaluated once per tick for all its connections."""
+        cached = self._source_cache.get(source.name)
+        if cached is not None and cached[0] == tau:
+            return cached[1]
+        outputs = source.evaluate(self.seconds(tau))
+        self._source_cache[source.name] = (tau, outputs)
+        return outputs
+
+    def _store(self, comp: Component, tick: int, outputs: dict[str, np.ndarray]) -> None:
+        """Keep what consumers will read (copies: a host's outputs are valid until its next step)."""
+        comp.outputs = outputs
+        for port, history in comp.histories:
+            history.append(tick, outputs[port].copy())
+        for listener in comp.listeners:
+            listener(comp, tick, outputs)
+        # Drop samples no consumer can still ask for.
+        for consumer, route in comp.consumers:
+            route.history.prune(consumer.time - 2 * comp.step - consumer.step)
+
+    # -- stepping --------------------------------------------------------------------------------
+    def _start(self, comp: Component, clock) -> None:
+        t = comp.time
+        for hook in comp.pre_step:
+            hook(comp, t)
+        values = self._input_values(comp)
+        comp.running = True
+        comp.started_at = clock()
+        ts, h = self.seconds(t), self.seconds(comp.step)
+        call(comp, "fmi3DoStep", ts, lambda: comp.host.start_step(ts, h, values))
+
+    def _finish(self, comp: Component, clock) -> None:
+        t = comp.time
+        outputs = call(comp, "fmi3DoStep", self.seconds(t), comp.host.finish_step)
+        comp.busy += clock() - comp.started_at
+        comp.running = False
+        comp.time = t + comp.step
+        comp.steps += 1
+        self._store(comp, comp.time, outputs)
+        if getattr(comp.host, "terminate_requested", False):
+            raise RunTerminated(comp.name, self.seconds(comp.time))
+
+    def run(self, clock, progress: Callable[[int], None] | None = None) -> None:
+        """Step until every component has reached the end; ``progress(tick)`` now and then."""
+        comps = self.ordered
+        schedule = self._schedule
+        period = 1
+        for comp in comps:
+            period = math.lcm(period, comp.step)
+        lookahead = 2 * max((c.step for c in comps), default=1)
+        # Beyond this tick the end of the run changes decisions: they are no longer remembered.
+        cache_until = self.end - 3 * lookahead
+        events = 0
+        self.notify("started")
+        while True:
+            if self.stop_reason:
+                raise RunInterrupted(self.stop_reason)
+            t_min = min(c.time for c in comps) if comps else self.end
+            if t_min < cache_until and comps:
+                key = (t_min % period, *[c.time - t_min for c in comps], *[c.running for c in comps])
+                decision = schedule.get(key)
+                if decision is None:
+                    decision = self._decide(lookahead)
+                    if len(schedule) < _SCHEDULE_CACHE_LIMIT:
+                        schedule[key] = decision
+            else:
+                decision = self._decide(lookahead)
+            if decision is None:
+                break
+            start, index = decision
+            comp = comps[index]
+            if start:
+                self._start(comp, clock)
+                if not comp.asynchronous:
+                    self._finish(comp, clock)
+            else:
+                self._finish(comp, clock)
+            events += 1
+            if progress is not None and not events & 63:
+                progress(self.reached)
+        if progress is not None:
+            progress(self.reached)
+
+    def _decide(self, lookahead: int) -> tuple[bool, int] | None:
+        """The next call: (True, i) starts component i's step, (False, i) collects it; None: done."""
+        end = self.end
+        pending = [c for c in self.ordered if c.time < end or c.running]
+        if not pending:
+            return None
+        t_min = min(c.time for c in pending)
+        best = None
+        for c in pending:
+            if c.running or c.time >= end or c.time - t_min > lookahead or not self._ready(c):
+                continue
+            if best is None or (c.time, c.rank) < (best.time, best.rank):
+                best = c
+        if best is not None:
+            return True, best.index
+        running = [c for c in pending if c.running]
+        if running:
+            return False, min(running, key=lambda c: (c.time, c.rank)).index
+        stuck = ", ".join(f"{c.name} at t = {self.seconds(c.time):.6g} s" for c in pending)
+        raise OrchestrationError(f"no component can step ({stuck}); this is a bug in the scene checks")
+
+    @staticmethod
+    def _ready(comp: Component) -> bool:
+        for route in comp.routes:
+            producer = route.producer
+            if producer is None or route.history is None:
+                continue
+            tau = comp.time + route.need_offset
+            need = min((tau // producer.step) * producer.step, producer.end)
+            if producer.time < need:
+                return False
+        return True
+
+    # -- the end ---------------------------------------------------------------------------------
+    def keep_outputs(self) -> dict[str, dict[str, np.ndarray]]:
+        """Copies of every component's latest outputs (hosts' buffers go away at teardown)."""
+        return {c.name: {port: np.array(value, copy=True) for port, value in c.outputs.items()} for c in self.ordered}
+
+    def teardown(self) -> list[tuple[str, int, str]]:
+        """Terminate every host (never raises); return their log messages as (component, status, text)."""
+        messages = []
+        for comp in self.ordered:
+            host = comp.host
+            if host is None:
+                continue
+            try:
+                host.terminate()
+            except Exception as exc:  # terminate never raises by contract; belt and braces
+                logger.warning("%s: terminate failed: %s", comp.name, exc)
+            for status, text in getattr(host, "messages", []):
+                messages.append((comp.name, status, text))
+        return messages
+
+
+def _add(items: list, item) -> None:
+    if item not in items:
+        items.append(item)
+
+
+def _typed(value, port):
+    array = np.asarray(value)
+    if port.type.startswith("Float"):
+        return array.astype(np.float64)
+    if port.type == "Boolean":
+        return array.astype(bool)
+    return np.rint(array).astype(np.int64)
+
+
+def initialization_order(scene: Scene, names: list[str]) -> list[str]:
+    """Producers before consumers; a loop is entered where only jacobi connections lead in."""
+    remaining = list(names)
+    edges = [(c.source, c.target, c.ordering) for c in scene.connections if c.source in names and c.target in names]
+    order: list[str] = []
+    while remaining:
+        def blocked(n, kinds):
+            return any(t == n and s in remaining and k in kinds for s, t, k in edges)
+        free = [n for n in remaining if not blocked(n, ("gauss-seidel", "jacobi"))]
+        if not free:
+            free = [n for n in remaining if not blocked(n, ("gauss-seidel",))] or remaining
+        order.append(free[0])
+        remaining.remove(free[0])
+    return order

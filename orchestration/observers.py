@@ -1,0 +1,209 @@
+"""Observers of a run: recording, statistics, real-time pacing and progress.
+
+Each is notified by :class:`~orchestration.algorithm.MultirateAlgorithm` (see its ``Observer``
+protocol) and never changes what the components compute. A new observer is one class here.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .scene import Scene
+
+
+class Recording:
+    """CSV rows of the scene's ``[record]`` ports and the surface time series (VTU + PVD)."""
+
+    def __init__(self, scene: Scene, out_dir: Path, *, surfaces: bool = True):
+        self.scene = scene
+        self.out_dir = Path(out_dir)
+        self.surfaces = list(scene.surfaces) if surfaces else []
+        self.recorder = None
+        self._recorded = {name: list(ports) for name, ports in scene.record.items()}
+
+    def ports(self, component: str) -> list[str]:
+        ports = list(self._recorded.get(component, []))
+        for surface in self.surfaces:
+            if surface.component == component:
+                ports += [surface.positions, *surface.point_data]
+        return ports
+
+    def initializing(self, algorithm) -> None:
+        from .recording import Recorder
+
+        self.seconds = algorithm.seconds
+        self.recorder = Recorder(self.out_dir)
+        for name, ports in self._recorded.items():
+            spec = self.scene.components[name]
+            self.recorder.add_stream(name, [(p, spec.ports[p].size, spec.ports[p].unit) for p in ports])
+
+    def initialized(self, algorithm) -> None:
+        for surface in self.surfaces:
+            values = algorithm.get_values(surface.component, [surface.triangles, surface.positions,
+                                                                *surface.point_data])
+            triangles = np.asarray(values[surface.triangles]).reshape(-1, 3).astype(np.int64)
+            self.recorder.add_surface_series(surface.name, triangles)
+            self._write_surface(surface, 0, values)
+
+    def stepped(self, comp, tick: int, outputs) -> None:
+        if comp.name in self._recorded:
+            self.recorder.write(comp.name, self.seconds(tick), outputs)
+        if tick:
+            for surface in self.surfaces:
+                if surface.component == comp.name and comp.steps % surface.every == 0:
+                    self._write_surface(surface, tick, outputs)
+
+    def _write_surface(self, surface, tick: int, outputs) -> None:
+        positions = np.asarray(outputs[surface.positions]).reshape(-1, 3)
+        point_data = {name: np.asarray(outputs[name]).reshape(positions.shape[0], -1).squeeze()
+                      for name in surface.point_data}
+        self.recorder.write_surface(surface.name, self.seconds(tick), positions, point_data)
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+
+    @property
+    def files(self) -> dict:
+        return self.recorder.files if self.recorder is not None else {}
+
+
+class Statistics:
+    """Peaks, energies and operator warnings named in the scene's ``[summary]``."""
+
+    def __init__(self, scene: Scene):
+        summary = scene.summary
+        self.peaks = {ref: (0.0, 0.0) for ref in summary.get("peaks", [])}
+        self.energy: dict[str, dict] = {}
+        self.warnings: dict[str, dict] = {}
+        self.by_component: dict[str, list[tuple[str, str, str]]] = {}
+        for kind in ("peaks", "energy", "warnings"):
+            for ref in summary.get(kind, []):
+                comp, port = ref.split(".")
+                self.by_component.setdefault(comp, []).append((kind, port, ref))
+
+    def ports(self, component: str) -> list[str]:
+        return [port for _, port, _ in self.by_component.get(component, [])]
+
+    def initializing(self, algorithm) -> None:
+        self.seconds = algorithm.seconds
+
+    def stepped(self, comp, tick: int, outputs) -> None:
+        t = self.seconds(tick)
+        h = self.seconds(comp.step) if tick else 0.0
+        for kind, port, ref in self.by_component[comp.name]:
+            value = outputs[port]
+            if kind == "peaks":
+                magnitude = math.sqrt(float(value @ value)) if value.size > 1 else abs(float(value[0]))
+                if magnitude > self.peaks[ref][0]:
+                    self.peaks[ref] = (magnitude, t)
+            elif kind == "energy":
+                v = float(value[0]) if value.size == 1 else math.sqrt(float(value @ value))
+                e = self.energy.get(ref)
+                if e is None:
+                    e = self.energy[ref] = {"initial": v, "final": v, "min": v, "max": v}
+                e["final"] = v
+                if v < e["min"]:
+                    e["min"] = v
+                if v > e["max"]:
+                    e["max"] = v
+            else:
+                on = bool(value[0] != 0)
+                w = self.warnings.get(ref)
+                if w is None:
+                    w = self.warnings[ref] = {"count": 0, "time_on_s": 0.0, "first_s": None, "_on": False}
+                if on and not w["_on"]:
+                    w["count"] += 1
+                    if w["first_s"] is None:
+                        w["first_s"] = t
+                if on:
+                    w["time_on_s"] += h
+                w["_on"] = on
+
+    def report(self) -> dict:
+        out: dict = {}
+        if self.peaks:
+            out["peaks"] = {ref: {"value": v, "time_s": t} for ref, (v, t) in self.peaks.items()}
+        if self.energy:
+            out["energy"] = {ref: {**e, "drift": e["final"] - e["initial"]} for ref, e in self.energy.items()}
+        if self.warnings:
+            out["operator_warnings"] = {ref: {k: v for k, v in w.items() if not k.startswith("_")}
+                                        for ref, w in self.warnings.items()}
+        return out
+
+
+class RealtimePacing:
+    """Paces the fastest components to the wall clock and measures how late each of their steps ends.
+
+    A step of ``[t, t + h]`` may not start before wall time ``t`` (from the start of the loop) and
+    should end by ``t + h``: its lateness is the wall time at its end minus ``t + h``. A haptic
+    loop that misses its 1 ms deadline is what an operator feels as a stall.
+    """
+
+    def __init__(self, pace: bool = True):
+        self.pace = pace
+        self.lateness: list[float] = []
+        self._fastest = None
+        self._start = 0.0
+
+    def subscribes(self, comp) -> bool:
+        return True  # the fastest are known once every component is (initializing)
+
+    def initializing(self, algorithm) -> None:
+        self.seconds = algorithm.seconds
+        self._fastest = min((c.step for c in algorithm.ordered), default=None)
+
+    def started(self, algorithm) -> None:
+        self._start = time.perf_counter()
+
+    def before_step(self, comp, tick: int) -> None:
+        if self.pace and comp.step == self._fastest:
+            ahead = self.seconds(tick) - (time.perf_counter() - self._start)
+            if ahead > 0:
+                time.sleep(ahead)
+
+    def stepped(self, comp, tick: int, outputs) -> None:
+        if tick and comp.step == self._fastest:
+            self.lateness.append((time.perf_counter() - self._start) - self.seconds(tick))
+
+    def report(self) -> dict:
+        late = np.asarray(self.lateness)
+        missed = late[late > 0]
+        out = {"haptic_steps": int(late.size), "missed": int(missed.size),
+               "worst_lateness_s": float(missed.max()) if missed.size else 0.0}
+        if late.size:
+            positive = np.maximum(late, 0.0)
+            out.update(lateness_p50_s=float(np.percentile(positive, 50)),
+                       lateness_p99_s=float(np.percentile(positive, 99)),
+                       lateness_max_s=float(positive.max()))
+        return out
+
+
+class Progress:
+    """A tqdm bar in simulated seconds (shown after one second of wall time)."""
+
+    def __init__(self, scene: Scene, duration: float, enabled: bool = True):
+        self.scene, self.duration, self.enabled = scene, float(duration), enabled
+        self.bar = None
+        self._shown = 0
+
+    def started(self, algorithm) -> None:
+        from tqdm import tqdm
+
+        self.seconds = algorithm.seconds
+        self._every = max(1, algorithm.base // 100)
+        self._end = algorithm.end
+        self.bar = tqdm(total=self.duration, desc=self.scene.name, unit="s", delay=1.0, disable=not self.enabled,
+                        bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s sim [{elapsed}<{remaining}]")
+
+    def advance(self, tick: int) -> None:
+        if self.bar is not None and (tick - self._shown >= self._every or tick >= self._end):
+            self.bar.update(self.seconds(tick) - self.bar.n)
+            self._shown = tick
+
+    def finished(self, algorithm) -> None:
+        if self.bar is not None:
+            self.bar.close()

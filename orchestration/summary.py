@@ -1,0 +1,62 @@
+"""The summary of a run: the dict written as ``summary.json`` and the text printed after a run."""
+from __future__ import annotations
+
+from .errors import status_name
+
+#: A run ends "completed", "terminated" (an FMU asked to stop: terminateSimulation), "interrupted"
+#: (Ctrl-C, SIGTERM) or "failed"; only "failed" and "interrupted" are errors for the command line.
+STATUSES = ("completed", "terminated", "interrupted", "failed")
+
+
+def fmu_messages(messages: list[tuple[str, int, str]]) -> list[dict]:
+    """Log messages at warning level and above, as summary entries."""
+    return [{"component": comp, "status": _short_status(status), "message": text}
+            for comp, status, text in messages if status >= 1]
+
+
+def _short_status(status: int) -> str:
+    name = status_name(status) or ""
+    return name[4:].lower() if name.startswith("fmi3") else name
+
+
+def format_summary(summary: dict, units: dict[str, str]) -> str:
+    """The readable summary: ``units`` maps "component.port" to its unit."""
+    def unit(ref: str) -> str:
+        u = units.get(ref)
+        return f" {u}" if u else ""
+
+    lines = []
+    rtf = summary["real_time_factor"]
+    head = (f"{summary['scene']}: {summary['status']}, {summary['simulated_time_s']:.4g} s simulated in "
+            f"{summary['wall_time_s']:.3g} s")
+    if rtf:
+        head += f" (real-time factor {rtf:.2f}, {summary['hosting']}; setup {summary['setup_time_s']:.1f} s)"
+    lines.append(head)
+    if summary["error"]:
+        lines.append(f"  {'reason' if summary['status'] == 'terminated' else 'error'}: {summary['error']}")
+    for name, comp in summary["components"].items():
+        lines.append(f"  {name:10s} {comp['rate_hz']:8.6g} Hz  {comp['steps']:7d} steps  busy {comp['busy_wall_s']:6.2f} s")
+    for ref, peak in summary.get("peaks", {}).items():
+        lines.append(f"  peak {ref:32s} {peak['value']:.4g}{unit(ref)} at {peak['time_s']:.3f} s")
+    for ref, e in summary.get("energy", {}).items():
+        u = unit(ref)
+        lines.append(f"  energy {ref:30s} final {e['final']:.4g}{u}, range [{e['min']:.4g}, {e['max']:.4g}]{u}, "
+                     f"drift {e['drift']:.4g}{u}")
+    for ref, w in summary.get("operator_warnings", {}).items():
+        first = f", first at {w['first_s']:.3f} s" if w["first_s"] is not None else ""
+        lines.append(f"  warning {ref:29s} raised {w['count']} time(s), on for {w['time_on_s']:.3f} s{first}")
+    if "deadlines" in summary:
+        d = summary["deadlines"]
+        line = f"  haptic deadlines missed: {d['missed']} of {d['haptic_steps']}"
+        if "lateness_p50_s" in d:
+            line += (f"; lateness p50 {1e3 * d['lateness_p50_s']:.3f} ms, p99 {1e3 * d['lateness_p99_s']:.3f} ms, "
+                     f"max {1e3 * d['lateness_max_s']:.3f} ms")
+        lines.append(line)
+    messages = summary.get("fmu_messages", [])
+    errors = [m for m in messages if m["status"] in ("error", "fatal")]
+    lines.append(f"  FMU messages: {len(messages)} ({len(errors)} errors)" if messages else "  FMU messages: none")
+    for m in messages[:5]:
+        lines.append(f"    {m['component']} [{m['status']}] {m['message'][:200]}")
+    lines.append(f"  results in {summary['results']['folder']}/: summary.json, a CSV per component, "
+                 "PNG plots, surfaces as .pvd (ParaView)")
+    return "\n".join(lines)
