@@ -193,3 +193,53 @@ def test_an_algebraic_loop_of_gauss_seidel_connections_is_rejected(synthetic_fmu
         scene_from_dict(data, tmp_path)
     data["connection"][1]["ordering"] = "jacobi"
     scene_from_dict(data, tmp_path)
+
+
+def test_the_remembered_schedule_steps_exactly_as_deciding_afresh(synthetic_fmus, tmp_path, monkeypatch):
+    """The schedule is decided once per relative state and then looked up; deciding every call
+    afresh (no memory) must give byte-identical results, across rates that share no step."""
+    from orchestration import algorithm
+
+    data = signal_echo_scene(synthetic_fmus, 0.001, "1/30", "average", "jacobi", duration=0.6)
+    data["fmu"]["echo2"] = {"path": str(synthetic_fmus["Echo"]), "step": "1/70"}
+    data["connection"] += [{"from": "echo.last_u", "to": "echo2.u", "transition": "interpolate", "ordering": "jacobi"},
+                           {"from": "signal.y3", "to": "echo2.v", "transition": "extrapolate", "ordering": "gauss-seidel"}]
+    data["record"]["echo2"] = ["last_u", "last_t"]
+    names = ("echo.csv", "echo2.csv", "signal.csv")
+    (tmp_path / "cached").mkdir()
+    run(data, tmp_path / "cached")
+    monkeypatch.setattr(algorithm, "_SCHEDULE_CACHE_LIMIT", 0)
+    (tmp_path / "fresh").mkdir()
+    run(data, tmp_path / "fresh")
+    for name in names:
+        assert (tmp_path / "cached" / "results" / name).read_bytes() == (tmp_path / "fresh" / "results" / name).read_bytes()
+    t, cols = read_stream(tmp_path / "cached" / "results" / "echo2.csv")
+    assert len(t) == 43 and t[-1] == pytest.approx(0.6)                # 0.6 s of 1/70 s steps, and t = 0
+
+
+def test_a_duration_off_the_step_grid_is_refused_with_the_durations_that_fit(synthetic_fmus, tmp_path):
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.01, "hold", "jacobi", duration=0.25)
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(data, tmp_path)
+    (problem,) = info.value.problems
+    assert "0.25 s is not a whole number of steps of signal (1/30 s)" in problem
+    assert "0.2 or 0.3" in problem                                        # the multiples of 1/10 s around it
+    data["scene"]["duration"] = 0.3
+    scene = scene_from_dict(data, tmp_path)
+    with pytest.raises(ValueError, match="not a whole number of steps"):
+        run_scene(scene, tmp_path / "results", duration=0.05, progress=False)
+
+
+def test_a_scene_object_runs_twice_with_the_same_results(tmp_path):
+    """Blocks and sources are created per run: the device plant starts from rest both times."""
+    from orchestration.build import ensure_fmus_built
+    from orchestration.scene import load_scene
+
+    ensure_fmus_built(quiet=True)
+    scene = load_scene("virtual_wall", {"duration": 0.2})
+    files = []
+    for k in range(2):
+        summary, _ = run_scene(scene, tmp_path / str(k), progress=False, plots=False, hosting="in-process")
+        assert summary["status"] == "completed", summary["error"]
+        files.append({n: (tmp_path / str(k) / n).read_bytes() for n in ("device.csv", "contact.csv")})
+    assert files[0] == files[1]

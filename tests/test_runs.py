@@ -72,13 +72,19 @@ def test_main_job_runs_the_default_scene_and_prints_a_summary(built, tmp_path):
 def test_realtime_pacing_counts_missed_deadlines(built, tmp_path):
     scene = load_scene("virtual_wall", {"duration": 0.3})
     start = time.perf_counter()
-    summary, _ = run_scene(scene, tmp_path, realtime=True, progress=False, plots=False)
+    summary, text = run_scene(scene, tmp_path, realtime=True, progress=False, plots=False)
     assert summary["status"] == "completed"
     assert summary["wall_time_s"] >= 0.3 * 0.98                   # paced: never ahead of the clock
     assert time.perf_counter() - start >= 0.3
     deadlines = summary["deadlines"]
     assert deadlines["haptic_steps"] == 600                        # device and contact, 300 each
     assert 0 <= deadlines["missed"] <= deadlines["haptic_steps"]
+    # lateness of every haptic step, clipped at 0 (early is on time): ordered percentiles, and a
+    # positive maximum exactly when a deadline was missed
+    assert 0 <= deadlines["lateness_p50_s"] <= deadlines["lateness_p99_s"] <= deadlines["lateness_max_s"]
+    assert (deadlines["lateness_max_s"] > 0) == (deadlines["missed"] > 0)
+    assert deadlines["lateness_max_s"] == deadlines["worst_lateness_s"]
+    assert "lateness p50" in text and "haptic deadlines missed" in text
 
 
 def _start_long_run(out: Path) -> subprocess.Popen:
@@ -172,3 +178,12 @@ def test_default_scene_renders_a_device_stiffness_without_chatter(built, tmp_pat
     onset = np.flatnonzero(force > 0)[0]
     window = force[(t >= t[onset]) & (t <= t[onset] + 0.4)]
     assert np.max(np.maximum.accumulate(window) - window) < 0.10 * window.max()
+
+
+def test_a_duration_off_the_step_grid_is_a_usage_error_on_the_command_line(built, tmp_path, capsys):
+    from orchestration.cli import EXIT_USAGE, main
+
+    assert main(["run", "virtual_wall", "--duration", "0.0015", "--quiet", "--out", str(tmp_path)]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "0.0015 s is not a whole number of steps" in err and "0.001 or 0.002" in err
+    assert not (tmp_path / "summary.json").exists()     # refused before anything ran
