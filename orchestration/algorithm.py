@@ -341,12 +341,22 @@ class MultirateAlgorithm:
         values = self._input_values(comp)
         comp.running = True
         comp.started_at = clock()
-        ts, h = self.seconds(t), self.seconds(comp.step)
-        call(comp, "fmi3DoStep", ts, lambda: comp.host.start_step(ts, h, values))
+        ts = t / self.base
+        try:  # call() without building a closure per step
+            comp.host.start_step(ts, comp.step / self.base, values)
+        except (FmuCallError, KeyboardInterrupt, RunInterrupted):
+            raise
+        except Exception as exc:
+            raise FmuCallError(comp.name, "fmi3DoStep", ts, f"{type(exc).__name__}: {exc}") from exc
 
     def _finish(self, comp: Component, clock) -> None:
         t = comp.time
-        outputs = call(comp, "fmi3DoStep", self.seconds(t), comp.host.finish_step)
+        try:
+            outputs = comp.host.finish_step()
+        except (FmuCallError, KeyboardInterrupt, RunInterrupted):
+            raise
+        except Exception as exc:
+            raise FmuCallError(comp.name, "fmi3DoStep", t / self.base, f"{type(exc).__name__}: {exc}") from exc
         comp.busy += clock() - comp.started_at
         comp.running = False
         comp.time = t + comp.step

@@ -307,17 +307,16 @@ def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
     return True
 
 
-#: The part of the default scene the warm-up runs: past the catheter's first contact with the sac wall
-#: (about 1.5 s), so every kernel of the default run (contact response, compliance, ETMM tangent) compiles.
-WARM_UP_DURATION = 1.8
-
-
 def _warm_run() -> int:
-    """The warm-up itself (in a fresh interpreter): the default scene, every FMU in this process."""
+    """The warm-up itself (in a fresh interpreter): the whole default scene, every FMU in this process.
+
+    Some kernels first run late (the non-linear ETMM tensors once the wall strains past their
+    threshold, about 0.7 s after the first contact), so a shorter run leaves them to the user's.
+    """
     from .master import run_scene
     from .scene import load_scene
 
-    scene = load_scene("aaa_endovascular", {"duration": WARM_UP_DURATION})
+    scene = load_scene("aaa_endovascular")
     with tempfile.TemporaryDirectory(prefix="aaa_cosim_warm_") as tmp:
         summary, _ = run_scene(scene, tmp, hosting="in-process", progress=False, plots=False, vtu=False)
     if summary["status"] != "completed":
