@@ -73,7 +73,7 @@ _NUMERIC: dict[str, tuple[str, type, type]] = {
 NATIVE_DTYPES = {name: dtype for name, (_, _, dtype) in _NUMERIC.items()}
 #: Types whose values float64 holds exactly only up to 2**53 in magnitude.
 _WIDE_TYPES = ("Int64", "UInt64", "Enumeration")
-_EXACT_LIMIT = 2.0 ** 53
+_EXACT_INTEGER = 2 ** 53
 #: Every FMI 3.0 variable type the binding can get and set.
 VALUE_TYPES = tuple(_NUMERIC) + ("String", "Binary")
 
@@ -219,6 +219,15 @@ def slot_layout(ports: Mapping[str, PortLike], names: Sequence[str]) -> tuple[di
         layout[names[i]] = (offset, offset + size)
         offset += size
     return layout, offset
+
+
+def _exact_in_float64(values: np.ndarray) -> bool:
+    """Whether every integer in ``values`` is one float64 holds exactly (|v| <= 2**53), compared as integers."""
+    if not values.size:
+        return True
+    if int(values.max()) > _EXACT_INTEGER:
+        return False
+    return values.dtype.kind == "u" or int(values.min()) >= -_EXACT_INTEGER
 
 
 def _value_references(vrs: Sequence[int]):
@@ -559,15 +568,15 @@ class Fmi3Instance:
             if status or len(messages) != mark:
                 self._check(group.call, status, mark)
             if group.cast:
-                if group.wide and group.size and np.abs(group.native).max() > _EXACT_LIMIT:
+                if group.wide and group.size and not _exact_in_float64(group.native):
                     self._refuse_wide(group)
                 np.copyto(group.slot, group.native, casting="unsafe")
 
     def _refuse_wide(self, group: _OutputGroup) -> None:
         for name, a, b in group.names:
             values = group.native[a:b]
-            if np.abs(values).max() > _EXACT_LIMIT:
-                bad = values[np.argmax(np.abs(values) > _EXACT_LIMIT)]
+            if not _exact_in_float64(values):
+                bad = next(v for v in values.tolist() if abs(v) > _EXACT_INTEGER)
                 raise FmuCallError(self.name, group.call, self.time,
                                    f"{name} = {int(bad)} is beyond 2**53 and would not survive the master's float64 "
                                    "values exactly")

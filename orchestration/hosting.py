@@ -27,7 +27,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .errors import FMI_WARNING, LOG_LEVELS, FmuCallError
-from .fmi3 import NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, resource_path, slot_layout
+from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, resource_path,
+                   slot_layout)
 from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 
 logger = logging.getLogger(__name__)
@@ -35,8 +36,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists", "slot_layout",
            "write_inputs", "NATIVE_DTYPES"]
 
-_LOG_LEVELS = LOG_LEVELS  # the name the worker imported before; the table lives in errors.py
-_EXACT_LIMIT = 2.0 ** 53
 
 
 @runtime_checkable
@@ -226,7 +225,7 @@ class InProcessFmu:
                                              "supported (get_native reads them)")
         result: dict[str, np.ndarray] = {}
         for name, native in self.get_native(names).items():
-            if native.dtype.kind in "iu" and native.size and np.abs(native).max() > _EXACT_LIMIT:
+            if native.dtype.kind in "iu" and not _exact_in_float64(native):
                 raise FmuCallError(self.name, f"get_values({name})", self.instance.time,
                                    f"{name} holds a value beyond 2**53, which float64 does not hold exactly")
             result[name] = native.astype(np.float64).reshape(self.ports[name].size)
