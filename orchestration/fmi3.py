@@ -18,7 +18,7 @@ error, raises :class:`~orchestration.errors.FmuCallError` carrying the function 
 variables it was about), the simulated time, the status and the reason the FMU logged. The log
 messages themselves are collected in ``messages`` as ``(status, text)``.
 
-fmi3DoStep's out-flags: ``do_step`` returns a :class:`StepResult`. An fmi3Discard together with
+fmi3DoStep's out-flags: ``do_step`` returns them as a tuple (field names: :class:`StepResult`). An fmi3Discard together with
 ``terminateSimulation`` is the FMU ending the simulation, not an error: it is returned like any
 other step (``terminate_requested`` set), and ``fmi3Terminate`` stays allowed. An fmi3Discard
 without it raises (the orchestrator does not retry a step with a smaller size).
@@ -193,7 +193,8 @@ class Fmi3Library:
 
 # -- results and port records of the hot path ------------------------------------------------------
 class StepResult(NamedTuple):
-    """fmi3DoStep's out-arguments."""
+    """fmi3DoStep's out-arguments, in the order :meth:`Fmi3Instance.do_step` returns them (as a plain
+    tuple, which is cheaper to make on the hot path: ``StepResult(*flags)`` names them)."""
 
     event_handling_needed: bool
     terminate_requested: bool
@@ -291,25 +292,29 @@ class Fmi3Instance:
         #: after fmi3Error the instance is in the Error mode (no fmi3Terminate); after fmi3Fatal no call at all
         self.failed = False
         self.fatal = False
-        self.last_step: StepResult | None = None
         self._on_message = on_message
         self._functions = library.functions
-        self._do_step_raw = library.functions.get("fmi3DoStep")
+        self._do_step_raw = library.functions.get("fmi3DoStep") or self._no_do_step
         self._log_callback = LogMessageCallback(self._log)       # kept alive as long as the instance
         self._update_callback = IntermediateUpdateCallback()       # NULL: no intermediate updates
         self._handle: ctypes.c_void_p | None = None
+        self._live: ctypes.c_void_p | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
         self._inputs: list[_InputPort] = []
+        self._input_ports: dict[str, _InputPort] = {}
         self._input_index: dict[str, int] = {}
         self._groups: list[_OutputGroup] = []
         self.input_slots: dict[str, np.ndarray] = {}
         self.output_views: dict[str, np.ndarray] = {}
         # fmi3DoStep's out-arguments, allocated once
+        # (terminateSimulation and earlyReturn side by side, so that one read of a 16-bit word tells
+        # whether either is set)
         self._event = ctypes.c_bool()
-        self._terminate = ctypes.c_bool()
-        self._early = ctypes.c_bool()
+        self._stop_flags = (ctypes.c_bool * 2)()
+        self._stop_word = ctypes.c_uint16.from_buffer(self._stop_flags)
         self._last_time = ctypes.c_double()
-        self._step_refs = tuple(ctypes.pointer(x) for x in (self._event, self._terminate, self._early,
-                                                            self._last_time))
+        address = ctypes.addressof(self._stop_flags)
+        self._step_refs = (ctypes.pointer(self._event), ctypes.cast(address, c_bool_p),
+                           ctypes.cast(address + 1, c_bool_p), ctypes.pointer(self._last_time))
         instantiate = self._function("fmi3InstantiateCoSimulation")
         mark = len(self.messages)
         address = instantiate(name.encode(), instantiation_token.encode(),
@@ -319,7 +324,7 @@ class Fmi3Instance:
         if not address:
             reason = self._logged_reason(mark) if len(self.messages) > mark else "it returned NULL and logged no reason"
             raise FmuCallError(name, "fmi3InstantiateCoSimulation", None, reason)
-        self._handle = ctypes.c_void_p(address)
+        self._handle = self._live = ctypes.c_void_p(address)
 
     # -- errors ------------------------------------------------------------------------------------
     def _log(self, environment, status, category, message) -> None:
@@ -354,6 +359,7 @@ class Fmi3Instance:
                 self.failed = True
             if status >= FMI_FATAL:
                 self.fatal = True
+                self._live = None
             raise FmuCallError(self.name, call, self.time, self._logged_reason(mark), status)
         logged = max((s for s, _ in self.messages[mark:]), default=FMI_OK)
         if logged >= FMI_ERROR:
@@ -406,7 +412,7 @@ class Fmi3Instance:
 
     def free(self) -> None:
         """fmi3FreeInstance (idempotent; skipped after fmi3Fatal, when the standard allows no call)."""
-        handle, self._handle = self._handle, None
+        handle, self._handle, self._live = self._handle, None, None
         self.unbind()
         if handle is not None and not self.fatal:
             self._function("fmi3FreeInstance")(handle)
@@ -502,6 +508,7 @@ class Fmi3Instance:
                 pointer=_pointer(native, port.type), setter=self._function(f"fmi3Set{function_suffix(port.type)}"),
                 exact=port.type not in ("Float64", "Float32"), cast=cast))
         self._input_index = {name: i for i, name in enumerate(inputs)}
+        self._input_ports = {port.name: port for port in self._inputs}
         self._groups = []
         by_type: dict[str, list[str]] = {}
         for name in sorted(observed, key=lambda n: out_layout[n][0]):
@@ -524,7 +531,7 @@ class Fmi3Instance:
 
     def unbind(self) -> None:
         """Drop every view of the bound buffers (so shared memory can be closed)."""
-        self._inputs, self._input_index, self._groups = [], {}, []
+        self._inputs, self._input_index, self._input_ports, self._groups = [], {}, {}, []
         self.input_slots, self.output_views = {}, {}
 
     @property
@@ -533,6 +540,27 @@ class Fmi3Instance:
 
     def input_index(self, name: str) -> int | None:
         return self._input_index.get(name)
+
+    @property
+    def input_ports(self) -> dict[str, _InputPort]:
+        """The bound inputs by name: records with ``slot`` (the float64 view) and ``size``, for :meth:`push_port`."""
+        return self._input_ports
+
+    def push_port(self, port: _InputPort) -> None:
+        """Write one bound input's slot to the FMU (``port`` from :attr:`input_ports`)."""
+        self._push(port)
+
+    def write_inputs(self, values: Mapping[str, np.ndarray]) -> None:
+        """Copy ``values`` (float64-convertible arrays of the ports' sizes) into their input slots and
+        push each to the FMU. KeyError for a name that is not a bound input, ValueError for a wrong size."""
+        ports = self._input_ports
+        for name, value in values.items():
+            port = ports[name]
+            value = np.asarray(value, dtype=np.float64)
+            if value.size != port.size:
+                raise ValueError(f"{self.name}.{name} expects {port.size} value(s), got {value.size}")
+            np.copyto(port.slot, value.reshape(port.size))
+            self._push(port)
 
     def push(self, indices: Sequence[int] | None = None) -> None:
         """Write the input slots at ``indices`` of the bound input list (all when None) to the FMU."""
@@ -550,15 +578,18 @@ class Fmi3Instance:
             if port.exact and not np.array_equal(port.native, port.slot):
                 raise ValueError(f"{self.name}.{port.name} takes whole numbers"
                                  f"{' (0 or 1)' if port.native.dtype == np.bool_ else ''}; got {port.slot.tolist()}")
+        handle = self._live
+        if handle is None:
+            self._require("push")
         messages = self.messages
         mark = len(messages)
-        status = port.setter(self._handle, port.vr, 1, port.pointer, port.size)
+        status = port.setter(handle, port.vr, 1, port.pointer, port.size)
         if status or len(messages) != mark:
             self._check(port.call, status, mark)
 
     def pull(self) -> None:
         """Read every observed port into the output buffer."""
-        handle = self._handle
+        handle = self._live
         if handle is None:
             self._require("pull")
         messages = self.messages
@@ -568,7 +599,7 @@ class Fmi3Instance:
             if status or len(messages) != mark:
                 self._check(group.call, status, mark)
             if group.cast:
-                if group.wide and group.size and not _exact_in_float64(group.native):
+                if group.wide and not _exact_in_float64(group.native):
                     self._refuse_wide(group)
                 np.copyto(group.slot, group.native, casting="unsafe")
 
@@ -581,32 +612,41 @@ class Fmi3Instance:
                                    f"{name} = {int(bad)} is beyond 2**53 and would not survive the master's float64 "
                                    "values exactly")
 
-    def do_step(self, t: float, h: float, no_set_fmu_state_prior: bool = True) -> StepResult:
-        """fmi3DoStep from ``t`` over ``h``; its out-flags (see the module's notes on fmi3Discard)."""
-        handle = self._handle
-        if handle is None or self.fatal or self._do_step_raw is None:
+    def do_step(self, t: float, h: float, no_set_fmu_state_prior: bool = True) -> tuple[bool, bool, bool, float]:
+        """fmi3DoStep from ``t`` over ``h``; returns its out-flags ``(event_handling_needed,
+        terminate_requested, early_return, last_successful_time)`` (see :class:`StepResult` and the
+        module's notes on fmi3Discard). ``last_successful_time`` is the FMU's when it returned early
+        or asked to terminate, else ``t + h``."""
+        handle = self._live
+        if handle is None:
             self._require("fmi3DoStep")
-            self._function("fmi3DoStep")
-        self.time = t
         messages = self.messages
         mark = len(messages)
-        refs = self._step_refs
-        self._terminate.value = self._early.value = False
-        self._last_time.value = t + h  # what an FMU that leaves it unset has reached
-        status = self._do_step_raw(handle, t, h, no_set_fmu_state_prior, refs[0], refs[1], refs[2], refs[3])
-        terminate = self._terminate.value
+        status = self._do_step_raw(handle, t, h, no_set_fmu_state_prior, *self._step_refs)
         if status or len(messages) != mark:
-            if not (status == FMI_DISCARD and terminate):
-                if status == FMI_DISCARD:
-                    reason = self._logged_reason(mark) if len(messages) > mark else "the FMU logged no reason"
-                    raise FmuCallError(self.name, "fmi3DoStep", t,
-                                       f"{reason} (fmi3Discard without terminateSimulation: the FMU could not "
-                                       "complete the step, and the master does not retry with a smaller one)", status)
-                self._check("fmi3DoStep", status, mark)
-        result = StepResult(self._event.value, terminate, self._early.value, self._last_time.value)
-        self.last_step = result
-        self.time = result.last_successful_time if (terminate or result.early_return) else t + h
-        return result
+            self._step_problem(t, status, mark)
+        if self._stop_word.value:
+            terminate, early = self._stop_flags
+            last = self.time = self._last_time.value
+            return self._event.value, terminate, early, last
+        end = self.time = t + h
+        return self._event.value, False, False, end
+
+    def _no_do_step(self, *args) -> None:
+        self._function("fmi3DoStep")  # raises: the binary does not export it
+
+    def _step_problem(self, t: float, status: int, mark: int) -> None:
+        """Raise for a failed fmi3DoStep, unless it is fmi3Discard with terminateSimulation."""
+        self.time = t
+        if status == FMI_DISCARD:
+            if self._stop_flags[0]:
+                return
+            messages = self.messages
+            reason = self._logged_reason(mark) if len(messages) > mark else "the FMU logged no reason"
+            raise FmuCallError(self.name, "fmi3DoStep", t,
+                               f"{reason} (fmi3Discard without terminateSimulation: the FMU could not complete the "
+                               "step, and the master does not retry with a smaller one)", status)
+        self._check("fmi3DoStep", status, mark)
 
 
 def resource_path(unzip_dir: Path | str) -> str:

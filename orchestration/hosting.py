@@ -140,6 +140,9 @@ class InProcessFmu:
         self._input_index: dict[str, int] = {}
         self._output_views: dict[str, np.ndarray] = {}
         self._configured = False
+        # the hot path's calls into the binding, bound once (they raise until there is an instance)
+        self._input_ports: dict = {}
+        self._push_port = self._do_step = self._pull = self._not_ready
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
@@ -157,6 +160,7 @@ class InProcessFmu:
             self.instance = Fmi3Instance(self._library, self.name, description.instantiation_token,
                                          resource_path(self._unzip_dir), messages=self.messages,
                                          on_message=self._log if self._logger is not None else None)
+            self._do_step, self._pull = self.instance.do_step, self.instance.pull
         except FmuCallError:
             self._release_library()
             raise
@@ -253,44 +257,45 @@ class InProcessFmu:
         self._input_slots = instance.input_slots
         self._input_index = {name: i for i, name in enumerate(inputs)}
         self._output_views = instance.output_views
+        self._input_ports = instance.input_ports
+        self._push_port = instance.push_port
         self._configured = True
 
     def unbind(self) -> None:
         if self.instance is not None:
             self.instance.unbind()
-        self._input_slots, self._input_index, self._output_views = {}, {}, {}
+        self._input_slots, self._input_index, self._output_views, self._input_ports = {}, {}, {}, {}
+        self._push_port = self._not_ready
 
     # -- hot path ----------------------------------------------------------------------------------
     def set_inputs(self, values: dict[str, np.ndarray]) -> None:
-        if not self._configured:
-            self._require_instance("set_inputs")
-            raise RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
-        which = write_inputs(self.name, self._input_slots, self._input_index, values)
-        self.instance.push(which)
+        ports = self._input_ports
+        push = self._push_port
+        for name, value in values.items():
+            port = ports.get(name)
+            if port is None:
+                raise self._unconfigured_input(name)
+            value = np.asarray(value, dtype=np.float64)
+            if value.size != port.size:
+                raise ValueError(f"{self.name}.{name} expects {port.size} value(s), got {value.size}")
+            np.copyto(port.slot, value.reshape(port.size))
+            push(port)
 
     def get_outputs(self) -> dict[str, np.ndarray]:
-        instance = self.instance
-        if instance is None or self._terminated:
-            self._require_instance("get_outputs")
-        instance.pull()
+        self._pull()
         return {name: view.copy() for name, view in self._output_views.items()}
 
     def step(self, t: float, h: float) -> StepResult:
         """fmi3DoStep; records its out-flags in ``terminate_requested``, ``early_return`` and
-        ``last_successful_time``."""
-        instance = self.instance
-        if instance is None or self._terminated:
-            self._require_instance("start_step")
-        result = instance.do_step(t, h)
-        self.terminate_requested = result.terminate_requested
-        self.early_return = result.early_return
-        self.last_successful_time = result.last_successful_time
+        ``last_successful_time`` and returns them all (see :class:`~orchestration.fmi3.StepResult`)."""
+        result = StepResult(*self._do_step(t, h))
+        _, self.terminate_requested, self.early_return, self.last_successful_time = result
         return result
 
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
         if inputs:
             self.set_inputs(inputs)
-        self.step(t, h)
+        _, self.terminate_requested, self.early_return, self.last_successful_time = self._do_step(t, h)
 
     def finish_step(self) -> dict[str, np.ndarray]:
         return self.get_outputs()
@@ -318,6 +323,7 @@ class InProcessFmu:
                 logger.warning("%s: fmi3FreeInstance failed: %s", self.name, exc)
         self.unbind()
         self._configured = False
+        self._do_step = self._pull = self._not_ready
         self._release_library()
 
     def _release_library(self) -> None:
@@ -336,6 +342,18 @@ class InProcessFmu:
     # -- logging and errors ------------------------------------------------------------------------
     def _log(self, status: int, text: str) -> None:
         self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)
+
+    def _not_ready(self, *args) -> None:
+        """Stands for the binding's hot-path calls before instantiate() and after terminate()."""
+        self._require_instance("start_step, finish_step or get_outputs")
+        raise RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
+
+    def _unconfigured_input(self, name: str) -> Exception:
+        if not self._configured:
+            self._require_instance("set_inputs")
+            return RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
+        return PortConfigurationError(f"{self.name}.{name} is not among the configured inputs "
+                                      f"({', '.join(self._input_slots) or 'none'}): list it in configure()")
 
     def _require_instance(self, what: str) -> Fmi3Instance:
         if self._terminated:

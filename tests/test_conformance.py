@@ -239,6 +239,37 @@ def test_fixed_internal_step_fmu_through_the_hosts(kind, fmus):
         host.terminate()
 
 
+def test_a_discarded_step_without_termination_is_an_error_that_says_why(kind, fmus):
+    host = hosted(kind, "ramp", fmus["Ramp"])
+    try:
+        host.instantiate()
+        host.set_values({"max_step": 0.01})
+        host.enter_initialization(0.0)
+        host.configure([], ["y"])
+        host.exit_initialization()
+        host.start_step(0.0, 0.01, {})
+        assert host.finish_step()["y"].tolist() == [0.01 * 0.01]
+        with pytest.raises(FmuCallError) as info:
+            host.start_step(0.01, 0.02, {})
+            host.finish_step()
+        error = info.value
+        assert (error.call, error.time, error.status) == ("fmi3DoStep", 0.01, 2)
+        assert error.reason.startswith("a step of 0.02 s is longer than max_step = 0.01 s: not taken "
+                                       "(fmi3Discard without terminateSimulation")
+    finally:
+        host.terminate()  # fmi3Terminate is still allowed after fmi3Discard
+    assert not [text for status, text in host.messages if status >= FMI_ERROR]
+
+
+def test_the_conformance_fmus_are_valid_for_fmpy(fmus):
+    from fmpy import read_model_description
+    from fmpy.validation import validate_fmu
+
+    for name, path in fmus.items():
+        assert validate_fmu(str(path)) == [], name
+        read_model_description(str(path), validate_model_structure=True)
+
+
 # -- terminateSimulation ---------------------------------------------------------------------------
 @pytest.mark.parametrize("discard", [False, True])
 def test_terminate_simulation_is_reported_by_the_hosts(kind, fmus, discard, caplog):

@@ -363,4 +363,126 @@ FMI3_Export fmi3Status fmi3Reset(fmi3Instance instance) {
     return fmi3OK;
 }
 
+/* -- the rest of the API: Model Exchange, Scheduled Execution, clocks, FMU state, derivatives ---- */
+/* Exported like every FMI 3.0 function (importers such as FMPy load them all); each refuses. */
+static fmi3Status unsupported(fmi3Instance instance, const char *function) {
+    if (instance != NULL) log_message((Instance *)instance, fmi3Error, "%s is not supported by this FMU", function);
+    return fmi3Error;
+}
+
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wunused-parameter"
+FMI3_Export fmi3Instance fmi3InstantiateModelExchange(fmi3String instanceName, fmi3String instantiationToken, fmi3String resourcePath, fmi3Boolean visible, fmi3Boolean loggingOn, fmi3InstanceEnvironment instanceEnvironment, fmi3LogMessageCallback logMessage) {
+    return NULL;
+}
+FMI3_Export fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3String instantiationToken, fmi3String resourcePath, fmi3Boolean visible, fmi3Boolean loggingOn, fmi3InstanceEnvironment instanceEnvironment, fmi3LogMessageCallback logMessage, fmi3ClockUpdateCallback clockUpdate, fmi3LockPreemptionCallback lockPreemption, fmi3UnlockPreemptionCallback unlockPreemption) {
+    return NULL;
+}
+FMI3_Export fmi3Status fmi3EnterEventMode(fmi3Instance instance) {
+    return unsupported(instance, "fmi3EnterEventMode");
+}
+FMI3_Export fmi3Status fmi3GetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, fmi3Clock values[]) {
+    return unsupported(instance, "fmi3GetClock");
+}
+FMI3_Export fmi3Status fmi3SetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3Clock values[]) {
+    return unsupported(instance, "fmi3SetClock");
+}
+FMI3_Export fmi3Status fmi3GetNumberOfVariableDependencies(fmi3Instance instance, fmi3ValueReference valueReference, size_t* nDependencies) {
+    return unsupported(instance, "fmi3GetNumberOfVariableDependencies");
+}
+FMI3_Export fmi3Status fmi3GetVariableDependencies(fmi3Instance instance, fmi3ValueReference dependent, size_t elementIndicesOfDependent[], fmi3ValueReference independents[], size_t elementIndicesOfIndependents[], fmi3DependencyKind dependencyKinds[], size_t nDependencies) {
+    return unsupported(instance, "fmi3GetVariableDependencies");
+}
+FMI3_Export fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState* FMUState) {
+    return unsupported(instance, "fmi3GetFMUState");
+}
+FMI3_Export fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
+    return unsupported(instance, "fmi3SetFMUState");
+}
+FMI3_Export fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState* FMUState) {
+    return unsupported(instance, "fmi3FreeFMUState");
+}
+FMI3_Export fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUState, size_t* size) {
+    return unsupported(instance, "fmi3SerializedFMUStateSize");
+}
+FMI3_Export fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState, fmi3Byte serializedState[], size_t size) {
+    return unsupported(instance, "fmi3SerializeFMUState");
+}
+FMI3_Export fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte serializedState[], size_t size, fmi3FMUState* FMUState) {
+    return unsupported(instance, "fmi3DeserializeFMUState");
+}
+FMI3_Export fmi3Status fmi3GetDirectionalDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[], size_t nUnknowns, const fmi3ValueReference knowns[], size_t nKnowns, const fmi3Float64 seed[], size_t nSeed, fmi3Float64 sensitivity[], size_t nSensitivity) {
+    return unsupported(instance, "fmi3GetDirectionalDerivative");
+}
+FMI3_Export fmi3Status fmi3GetAdjointDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[], size_t nUnknowns, const fmi3ValueReference knowns[], size_t nKnowns, const fmi3Float64 seed[], size_t nSeed, fmi3Float64 sensitivity[], size_t nSensitivity) {
+    return unsupported(instance, "fmi3GetAdjointDerivative");
+}
+FMI3_Export fmi3Status fmi3GetIntervalDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, fmi3Float64 intervals[], fmi3IntervalQualifier qualifiers[]) {
+    return unsupported(instance, "fmi3GetIntervalDecimal");
+}
+FMI3_Export fmi3Status fmi3GetIntervalFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, fmi3UInt64 counters[], fmi3UInt64 resolutions[], fmi3IntervalQualifier qualifiers[]) {
+    return unsupported(instance, "fmi3GetIntervalFraction");
+}
+FMI3_Export fmi3Status fmi3GetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, fmi3Float64 shifts[]) {
+    return unsupported(instance, "fmi3GetShiftDecimal");
+}
+FMI3_Export fmi3Status fmi3GetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, fmi3UInt64 counters[], fmi3UInt64 resolutions[]) {
+    return unsupported(instance, "fmi3GetShiftFraction");
+}
+FMI3_Export fmi3Status fmi3SetIntervalDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3Float64 intervals[]) {
+    return unsupported(instance, "fmi3SetIntervalDecimal");
+}
+FMI3_Export fmi3Status fmi3SetIntervalFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3UInt64 counters[], const fmi3UInt64 resolutions[]) {
+    return unsupported(instance, "fmi3SetIntervalFraction");
+}
+FMI3_Export fmi3Status fmi3SetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3Float64 shifts[]) {
+    return unsupported(instance, "fmi3SetShiftDecimal");
+}
+FMI3_Export fmi3Status fmi3SetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3UInt64 counters[], const fmi3UInt64 resolutions[]) {
+    return unsupported(instance, "fmi3SetShiftFraction");
+}
+FMI3_Export fmi3Status fmi3EvaluateDiscreteStates(fmi3Instance instance) {
+    return unsupported(instance, "fmi3EvaluateDiscreteStates");
+}
+FMI3_Export fmi3Status fmi3UpdateDiscreteStates(fmi3Instance instance, fmi3Boolean* discreteStatesNeedUpdate, fmi3Boolean* terminateSimulation, fmi3Boolean* nominalsOfContinuousStatesChanged, fmi3Boolean* valuesOfContinuousStatesChanged, fmi3Boolean* nextEventTimeDefined, fmi3Float64* nextEventTime) {
+    return unsupported(instance, "fmi3UpdateDiscreteStates");
+}
+FMI3_Export fmi3Status fmi3EnterContinuousTimeMode(fmi3Instance instance) {
+    return unsupported(instance, "fmi3EnterContinuousTimeMode");
+}
+FMI3_Export fmi3Status fmi3CompletedIntegratorStep(fmi3Instance instance, fmi3Boolean noSetFMUStatePriorToCurrentPoint, fmi3Boolean* enterEventMode, fmi3Boolean* terminateSimulation) {
+    return unsupported(instance, "fmi3CompletedIntegratorStep");
+}
+FMI3_Export fmi3Status fmi3SetTime(fmi3Instance instance, fmi3Float64 time) {
+    return unsupported(instance, "fmi3SetTime");
+}
+FMI3_Export fmi3Status fmi3SetContinuousStates(fmi3Instance instance, const fmi3Float64 continuousStates[], size_t nContinuousStates) {
+    return unsupported(instance, "fmi3SetContinuousStates");
+}
+FMI3_Export fmi3Status fmi3GetContinuousStateDerivatives(fmi3Instance instance, fmi3Float64 derivatives[], size_t nContinuousStates) {
+    return unsupported(instance, "fmi3GetContinuousStateDerivatives");
+}
+FMI3_Export fmi3Status fmi3GetEventIndicators(fmi3Instance instance, fmi3Float64 eventIndicators[], size_t nEventIndicators) {
+    return unsupported(instance, "fmi3GetEventIndicators");
+}
+FMI3_Export fmi3Status fmi3GetContinuousStates(fmi3Instance instance, fmi3Float64 continuousStates[], size_t nContinuousStates) {
+    return unsupported(instance, "fmi3GetContinuousStates");
+}
+FMI3_Export fmi3Status fmi3GetNominalsOfContinuousStates(fmi3Instance instance, fmi3Float64 nominals[], size_t nContinuousStates) {
+    return unsupported(instance, "fmi3GetNominalsOfContinuousStates");
+}
+FMI3_Export fmi3Status fmi3GetNumberOfEventIndicators(fmi3Instance instance, size_t* nEventIndicators) {
+    return unsupported(instance, "fmi3GetNumberOfEventIndicators");
+}
+FMI3_Export fmi3Status fmi3GetNumberOfContinuousStates(fmi3Instance instance, size_t* nContinuousStates) {
+    return unsupported(instance, "fmi3GetNumberOfContinuousStates");
+}
+FMI3_Export fmi3Status fmi3GetOutputDerivatives(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3Int32 orders[], fmi3Float64 values[], size_t nValues) {
+    return unsupported(instance, "fmi3GetOutputDerivatives");
+}
+FMI3_Export fmi3Status fmi3ActivateModelPartition(fmi3Instance instance, fmi3ValueReference clockReference, fmi3Float64 activationTime) {
+    return unsupported(instance, "fmi3ActivateModelPartition");
+}
+#pragma GCC diagnostic pop
+
 #endif
