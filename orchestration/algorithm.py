@@ -164,6 +164,8 @@ class MultirateAlgorithm:
         self.ordered: list[Component] = []
         self.sources: dict[str, object] = {}
         self.stop_reason: str | None = None
+        #: set when a component asked to end the run; the others finish the steps that end by then
+        self.terminated: RunTerminated | None = None
         self._source_cache: dict[str, tuple[int, dict]] = {}
         self._schedule: dict = {}
 
@@ -362,8 +364,16 @@ class MultirateAlgorithm:
         comp.time = t + comp.step
         comp.steps += 1
         self._store(comp, comp.time, outputs)
-        if getattr(comp.host, "terminate_requested", False):
-            raise RunTerminated(comp.name, self.seconds(comp.time))
+        if getattr(comp.host, "terminate_requested", False) and self.terminated is None:
+            self._end_at(comp.time)
+            self.terminated = RunTerminated(comp.name, self.seconds(comp.time))
+
+    def _end_at(self, tick: int) -> None:
+        """End the run at ``tick``: each component makes the steps that end by then, none beyond."""
+        self.end = tick
+        self._cache_until = -1  # decisions near the end are not remembered
+        for c in self.ordered:
+            c.end = max(c.time, (tick // c.step) * c.step)
 
     def run(self, clock, progress: Callable[[int], None] | None = None) -> None:
         """Step until every component has reached the end; ``progress(tick)`` now and then."""
@@ -374,14 +384,14 @@ class MultirateAlgorithm:
             period = math.lcm(period, comp.step)
         lookahead = 2 * max((c.step for c in comps), default=1)
         # Beyond this tick the end of the run changes decisions: they are no longer remembered.
-        cache_until = self.end - 3 * lookahead
+        self._cache_until = self.end - 3 * lookahead
         events = 0
         self.notify("started")
         while True:
             if self.stop_reason:
                 raise RunInterrupted(self.stop_reason)
             t_min = min(c.time for c in comps) if comps else self.end
-            if t_min < cache_until and comps:
+            if t_min < self._cache_until and comps:
                 key = (t_min % period, *[c.time - t_min for c in comps], *[c.running for c in comps])
                 decision = schedule.get(key)
                 if decision is None:
@@ -405,17 +415,18 @@ class MultirateAlgorithm:
                 progress(self.reached)
         if progress is not None:
             progress(self.reached)
+        if self.terminated is not None:
+            raise self.terminated
 
     def _decide(self, lookahead: int) -> tuple[bool, int] | None:
         """The next call: (True, i) starts component i's step, (False, i) collects it; None: done."""
-        end = self.end
-        pending = [c for c in self.ordered if c.time < end or c.running]
+        pending = [c for c in self.ordered if c.time < c.end or c.running]
         if not pending:
             return None
         t_min = min(c.time for c in pending)
         best = None
         for c in pending:
-            if c.running or c.time >= end or c.time - t_min > lookahead or not self._ready(c):
+            if c.running or c.time >= c.end or c.time - t_min > lookahead or not self._ready(c):
                 continue
             if best is None or (c.time, c.rank) < (best.time, best.rank):
                 best = c

@@ -1,13 +1,50 @@
-"""Errors of the orchestrator: what failed, in which component, at which simulated time, and why."""
+"""Errors of the orchestrator: what failed, in which component, at which simulated time, and why.
+
+Also the one place for FMI status codes and their names (:data:`STATUS_NAMES`, :func:`status_name`,
+:data:`LOG_LEVELS`) and for describing how a child process ended (:func:`exit_description`).
+"""
 from __future__ import annotations
 
+import logging
+import signal
+
+#: fmi3Status values.
+FMI_OK, FMI_WARNING, FMI_DISCARD, FMI_ERROR, FMI_FATAL = range(5)
 STATUS_NAMES = ("fmi3OK", "fmi3Warning", "fmi3Discard", "fmi3Error", "fmi3Fatal")
+#: Short names of the statuses, as the run summary lists logged messages.
+SHORT_STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal")
+#: The logging level an FMU message of each status is logged at.
+LOG_LEVELS = {FMI_OK: logging.INFO, FMI_WARNING: logging.WARNING, FMI_DISCARD: logging.WARNING,
+              FMI_ERROR: logging.ERROR, FMI_FATAL: logging.CRITICAL}
 
 
 def status_name(status: int | None) -> str | None:
+    """"fmi3Error" for 3; None for None; "status 7" for a value outside the standard."""
     if status is None:
         return None
     return STATUS_NAMES[status] if 0 <= status < len(STATUS_NAMES) else f"status {status}"
+
+
+def short_status_name(status: int) -> str:
+    """"error" for 3; the number as text for a value outside the standard."""
+    return SHORT_STATUS_NAMES[status] if 0 <= status < len(SHORT_STATUS_NAMES) else str(status)
+
+
+def signal_name(signum: int) -> str:
+    """"SIGABRT" for 6; the number as text for an unknown signal."""
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return str(signum)
+
+
+def exit_description(returncode: int | None) -> str:
+    """How a child process ended, from its exit code (negative: the signal that killed it)."""
+    if returncode is None:
+        return "exit status unknown"
+    if returncode < 0:
+        return f"killed by signal {signal_name(-returncode)}"
+    return f"exited with code {returncode}"
 
 
 class OrchestrationError(RuntimeError):

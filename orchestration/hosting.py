@@ -1,53 +1,58 @@
 """Hosting one FMU instance for the master: the component host protocol and its in-process host.
 
-All values crossing the protocol are 1-D float64 arrays; Int32 and Boolean (and the other
-integer types) are carried exactly as float64. The hot path (``set_inputs``, ``start_step``,
-``finish_step``, ``get_outputs``) calls the FMU's exported functions directly through ctypes
-with preallocated value-reference arrays and numpy buffers: FMPy's list-building getters cost
-about 900 us for the 8064-value tissue surface, the raw call about 7 us.
-
-Outputs are laid out in one float64 buffer grouped by type, Float64 ports first, so that all
+All values crossing the protocol are 1-D float64 arrays; integer types, Booleans and enumeration
+values are carried exactly as float64. The FMU is called through the project's FMI 3.0 binding
+(:mod:`orchestration.fmi3`): the hot path (``set_inputs``, ``start_step``, ``finish_step``,
+``get_outputs``) is the binding's ``push``/``do_step``/``pull`` over preallocated value-reference
+arrays and float64 buffers laid out by :func:`slot_layout`: Float64 ports first, so that all
 observed Float64 ports are read with one ``fmi3GetFloat64`` call straight into the buffer (the
-other types through a small native buffer, converted by one copy per type). The layout is a
-pure function of the port lists (:func:`slot_layout`), which is what lets the worker host
-(orchestration/worker.py) place the same buffers in shared memory.
+other types through a small native buffer, converted by one copy per type). The layout is a pure
+function of the port lists, which is what lets the worker host (orchestration/worker.py) place
+the same buffers in shared memory.
+
+After ``finish_step`` a host tells what fmi3DoStep reported: ``terminate_requested`` (the FMU asks
+to end the simulation: fmi3Terminate is still allowed, no further step is), ``early_return`` and
+``last_successful_time`` (the time the FMU reached).
+
+String and Binary variables are set with ``set_values`` (Binary as bytes or a hex string) and read
+with ``get_native``; they are not moved through the float64 buffers.
 """
 from __future__ import annotations
 
-import ctypes
 import logging
 import shutil
 import tempfile
-from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import FmuCallError
-from .ports import FmuDescription, PortInfo
+from .errors import FMI_WARNING, LOG_LEVELS, FmuCallError
+from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, resource_path,
+                   slot_layout)
+from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 
 logger = logging.getLogger(__name__)
 
-FMI_OK, FMI_WARNING, FMI_DISCARD, FMI_ERROR, FMI_FATAL = range(5)
+__all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists", "slot_layout",
+           "write_inputs", "NATIVE_DTYPES"]
 
-#: FMI type -> numpy dtype of its native buffer. Int64/UInt64 beyond 2**53 do not survive float64.
-NATIVE_DTYPES = {
-    "Float64": np.float64, "Float32": np.float32,
-    "Int8": np.int8, "UInt8": np.uint8, "Int16": np.int16, "UInt16": np.uint16,
-    "Int32": np.int32, "UInt32": np.uint32, "Int64": np.int64, "UInt64": np.uint64,
-    "Boolean": np.bool_,
-}
-_LOG_LEVELS = {FMI_OK: logging.INFO, FMI_WARNING: logging.WARNING, FMI_DISCARD: logging.WARNING,
-               FMI_ERROR: logging.ERROR, FMI_FATAL: logging.CRITICAL}
 
 
 @runtime_checkable
 class ComponentHost(Protocol):
-    """What the master calls on every stepped component (see prompts/orch_iface.md)."""
+    """What the master calls on every stepped component (see prompts/orch_iface.md).
+
+    After ``finish_step``: ``terminate_requested`` (the component asks to end the run),
+    ``early_return`` (it stopped before the end of the step) and ``last_successful_time`` (the
+    time it reached; the end of the step unless one of the two is set).
+    """
 
     name: str
     ports: dict[str, PortInfo]
     messages: list[tuple[int, str]]
+    terminate_requested: bool
+    early_return: bool
+    last_successful_time: float
 
     def instantiate(self) -> None: ...
     def set_values(self, values: dict[str, object]) -> None: ...
@@ -58,7 +63,7 @@ class ComponentHost(Protocol):
     def get_values(self, names: list[str]) -> dict[str, np.ndarray]: ...
     def exit_initialization(self) -> None: ...
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None: ...
-    def finish_step(self) -> dict[str, np.ndarray]: ...
+    def finish_step(self) -> dict[str, np.ndarray]: ...   # outputs valid until the next step (copy to keep)
     def wait_handle(self) -> object | None: ...
     def terminate(self) -> None: ...
 
@@ -81,68 +86,38 @@ def check_port_lists(component: str, ports: dict[str, PortInfo], inputs: list[st
                     f"{component} has no port {name!r} ({kind}); its ports are: {', '.join(sorted(ports))}")
             if port.type not in NATIVE_DTYPES:
                 raise PortConfigurationError(
-                    f"{component}.{name} is a {port.type} variable: only numeric and Boolean ports can be "
-                    f"connected (set strings with set_values)")
+                    f"{component}.{name} is a {port.type} variable: only numeric, Boolean and Enumeration ports can "
+                    f"be connected or observed (set String and Binary values with set_values)")
             if kind == "input" and port.causality not in ("input", "parameter"):
                 raise PortConfigurationError(
                     f"{component}.{name} is a {port.causality}, not an input: it cannot be written while stepping")
 
 
-def slot_layout(ports: dict[str, PortInfo], names: list[str]) -> tuple[dict[str, tuple[int, int]], int]:
-    """Offsets ``name -> (start, stop)`` in one float64 buffer, grouped by type (Float64 first), and its size."""
-    order = sorted(range(len(names)), key=lambda i: (ports[names[i]].type != "Float64", ports[names[i]].type, i))
-    layout, offset = {}, 0
-    for i in order:
-        size = ports[names[i]].size
-        layout[names[i]] = (offset, offset + size)
-        offset += size
-    return layout, offset
-
-
-def _pointer(array: np.ndarray, fmi_type: str):
-    ctype = np.ctypeslib.as_ctypes_type(np.dtype(NATIVE_DTYPES[fmi_type]))
-    return array.ctypes.data_as(ctypes.POINTER(ctype))
-
-
-def _value_references(vrs: list[int]):
-    from fmpy.fmi3 import fmi3ValueReference
-
-    return (fmi3ValueReference * len(vrs))(*vrs)
-
-
-@dataclass
-class _InputPort:
-    """A writable port: its float64 slot and, for non-Float64 types, the native buffer it is cast to."""
-
-    name: str
-    call: str
-    size: int
-    vr: object
-    slot: np.ndarray
-    native: np.ndarray
-    pointer: object
-    setter: object
-    exact: bool  # integer and Boolean values must survive the cast unchanged
-
-
-@dataclass
-class _OutputGroup:
-    """Observed ports of one type, read with one call into ``native`` then cast into ``slot``."""
-
-    call: str
-    count: int
-    size: int
-    vrs: object
-    slot: np.ndarray
-    native: np.ndarray
-    pointer: object
-    getter: object
-    cast: bool
+def write_inputs(component: str, slots: dict[str, np.ndarray], index: dict[str, int],
+                 values: dict[str, np.ndarray]):
+    """Copy ``values`` into their float64 ``slots`` (every one checked before any is written);
+    return the indices of the inputs to push, or None for all of them."""
+    checked = []
+    for name, value in values.items():
+        slot = slots.get(name)
+        if slot is None:
+            raise PortConfigurationError(f"{component}.{name} is not among the configured inputs "
+                                         f"({', '.join(slots) or 'none'}): list it in configure()")
+        value = np.asarray(value, dtype=np.float64)
+        if value.size != slot.size:
+            raise ValueError(f"{component}.{name} expects {slot.size} value(s), got {value.size}")
+        checked.append((slot, value))
+    for slot, value in checked:
+        np.copyto(slot, value.reshape(slot.size))
+    if len(values) == len(slots):
+        return None
+    return tuple(index[name] for name in values)
 
 
 class InProcessFmu:
-    """One FMU instance loaded into this process through FMPy's ``FMU3Slave``.
+    """One FMU instance loaded into this process through the FMI 3.0 binding.
 
+    ``instance`` is the :class:`~orchestration.fmi3.Fmi3Instance` once instantiated.
     ``log_to_logger=False`` keeps log messages only in ``messages`` (the worker process uses
     that: it sends them to the master, which logs them).
     """
@@ -152,222 +127,179 @@ class InProcessFmu:
         self.description = description
         self.ports: dict[str, PortInfo] = dict(description.ports)
         self.messages: list[tuple[int, str]] = []
+        self.instance: Fmi3Instance | None = None
+        self.terminate_requested = False
+        self.early_return = False
+        self.last_successful_time = 0.0
         self._logger = logging.getLogger(f"orchestration.fmu.{name}") if log_to_logger else None
-        self._slave = None
-        self._component = None
+        self._library: Fmi3Library | None = None
         self._unzip_dir: str | None = None
         self._initialized = False
         self._terminated = False
-        self._failed = False  # after fmi3Error the standard allows no fmi3Terminate
-        self._time: float | None = None
-        self._inputs: dict[str, _InputPort] = {}
-        self._input_list: list[_InputPort] = []
-        self._groups: list[_OutputGroup] = []
+        self._input_slots: dict[str, np.ndarray] = {}
+        self._input_index: dict[str, int] = {}
         self._output_views: dict[str, np.ndarray] = {}
         self._configured = False
+        # the hot path's calls into the binding, bound once (they raise until there is an instance)
+        self._input_ports: dict = {}
+        self._push_port = self._do_step = self._pull = self._not_ready
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
         from fmpy import extract
-        from fmpy.fmi3 import FMU3Slave, fmi3Boolean, fmi3Float64
 
-        if self._slave is not None:
+        if self.instance is not None or self._library is not None:
             raise RuntimeError(f"{self.name}: instantiate() was called twice")
+        if self._terminated:
+            raise RuntimeError(f"{self.name}: instantiate() after terminate()")
         description = self.description
         self._unzip_dir = tempfile.mkdtemp(prefix=f"fmu_{self.name}_")
         try:
             extract(str(description.path), self._unzip_dir)
-            self._slave = FMU3Slave(guid=description.instantiation_token, unzipDirectory=self._unzip_dir,
-                                    modelIdentifier=description.model_identifier, instanceName=self.name)
-            self._slave.instantiate(loggingOn=True, logMessage=self._on_log)
-        except Exception as exc:  # FMPy raises plain Exception for a failed load/instantiation
-            reason = self._logged_reason(0) if self.messages else str(exc)
+            self._library = Fmi3Library.from_extracted(self._unzip_dir, description.model_identifier)
+            self.instance = Fmi3Instance(self._library, self.name, description.instantiation_token,
+                                         resource_path(self._unzip_dir), messages=self.messages,
+                                         on_message=self._log if self._logger is not None else None)
+            self._do_step, self._pull = self.instance.do_step, self.instance.pull
+        except FmuCallError:
             self._release_library()
-            raise FmuCallError(self.name, "fmi3InstantiateCoSimulation", None, reason) from None
-        self._component = self._slave.component
-        functions = self._slave._functions
-        self._raw = functions
-        self._do_step_raw = functions["fmi3DoStep"]
-        # fmi3DoStep's out-arguments, allocated once
-        self._event_needed = fmi3Boolean()
-        self._terminate_requested = fmi3Boolean()
-        self._early_return = fmi3Boolean()
-        self._last_time = fmi3Float64()
-        self._step_refs = tuple(ctypes.pointer(x) for x in (self._event_needed, self._terminate_requested,
-                                                             self._early_return, self._last_time))
+            raise
+        except Exception as exc:  # a bad archive, a missing or unloadable binary
+            self._release_library()
+            raise FmuCallError(self.name, "fmi3InstantiateCoSimulation", None, str(exc)) from None
 
     def set_values(self, values: dict[str, object]) -> None:
-        """Parameters and start values of any FMI type; structural parameters are set first."""
-        self._require_instance("set_values")
+        """Parameters and start values of any FMI type; structural parameters are set first, in
+        Configuration Mode (so only before ``enter_initialization``)."""
+        instance = self._require_instance("set_values")
         unknown = [n for n in values if n not in self.ports]
         if unknown:
             raise PortConfigurationError(f"{self.name} has no variable(s) {', '.join(map(repr, unknown))}; "
                                          f"its variables are: {', '.join(sorted(self.ports))}")
         # every value is converted (and refused) before any call, so a refusal changes nothing
         converted = {name: _convert_for_setter(self.name, self.ports[name], value) for name, value in values.items()}
-        for name in converted:
-            if not hasattr(self._slave, f"set{self.ports[name].type}"):
-                raise PortConfigurationError(f"{self.name}.{name}: setting {self.ports[name].type} variables is "
-                                             "not supported")
         structural = [n for n in converted if self.ports[n].causality == "structuralParameter"]
+        if structural and self._initialized:
+            raise PortConfigurationError(
+                f"{self.name}: structural parameters ({', '.join(structural)}) are set in Configuration Mode, "
+                "which an FMU enters only before initialization: set them before enter_initialization()")
         if structural:  # FMI 3.0: structural parameters are set in Configuration Mode
-            self._checked("fmi3EnterConfigurationMode", self._slave.enterConfigurationMode, len(self.messages))
+            instance.enter_configuration_mode()
             try:
                 for name in structural:
                     self._set_value(name, converted[name])
-            finally:
-                self._checked("fmi3ExitConfigurationMode", self._slave.exitConfigurationMode, len(self.messages))
+            except BaseException:
+                if not instance.failed:  # leave the mode; the first error is the one reported
+                    try:
+                        instance.exit_configuration_mode()
+                    except FmuCallError:
+                        pass
+                raise
+            instance.exit_configuration_mode()
         for name in converted:
             if name not in structural:
                 self._set_value(name, converted[name])
 
     def _set_value(self, name: str, converted: list) -> None:
         port = self.ports[name]
-        setter = getattr(self._slave, f"set{port.type}")
-        mark = len(self.messages)
-        self._checked(f"fmi3Set{port.type}({name})", lambda: setter([port.value_reference], converted), mark)
+        self.instance.set(port.type, [port.value_reference], converted, label=name)
+
+    def get_native(self, names: list[str]) -> dict[str, object]:
+        """Current values in the FMU's own types: numpy arrays of the native dtype, lists of str
+        (String) or bytes (Binary). Not the hot path."""
+        instance = self._require_instance("get_native")
+        result: dict[str, object] = {}
+        for name in names:
+            port = self.ports.get(name)
+            if port is None:
+                raise PortConfigurationError(f"{self.name} has no variable {name!r}")
+            if port.type not in NATIVE_DTYPES and port.type not in ("String", "Binary"):
+                raise PortConfigurationError(f"{self.name}.{name}: reading {port.type} variables is not supported")
+            result[name] = instance.get(port.type, [port.value_reference], port.size, label=name)
+        return result
 
     def get_values(self, names: list[str]) -> dict[str, np.ndarray]:
         """Current values of numeric variables of any causality, as float64 arrays (not the hot path:
         calculated parameters such as surface triangles, read once)."""
         self._require_instance("get_values")
-        result: dict[str, np.ndarray] = {}
         for name in names:
             port = self.ports.get(name)
-            if port is None:
-                raise PortConfigurationError(f"{self.name} has no variable {name!r}")
-            getter = getattr(self._slave, f"get{port.type}", None)
-            if getter is None or port.type == "String":
-                raise PortConfigurationError(f"{self.name}.{name}: reading {port.type} variables is not supported")
-            box: list = []
-            mark = len(self.messages)
-            self._checked(f"fmi3Get{port.type}({name})",
-                          lambda: box.append(getter([port.value_reference], nValues=port.size)), mark)
-            result[name] = np.asarray(box[0], dtype=np.float64).reshape(port.size)
+            if port is not None and port.type not in NATIVE_DTYPES:
+                raise PortConfigurationError(f"{self.name}.{name}: reading {port.type} variables as numbers is not "
+                                             "supported (get_native reads them)")
+        result: dict[str, np.ndarray] = {}
+        for name, native in self.get_native(names).items():
+            if native.dtype.kind in "iu" and not _exact_in_float64(native):
+                raise FmuCallError(self.name, f"get_values({name})", self.instance.time,
+                                   f"{name} holds a value beyond 2**53, which float64 does not hold exactly")
+            result[name] = native.astype(np.float64).reshape(self.ports[name].size)
         return result
 
     def enter_initialization(self, start_time: float) -> None:
-        self._require_instance("enter_initialization")
-        self._time = float(start_time)
-        mark = len(self.messages)
-        status = self._raw["fmi3EnterInitializationMode"](self._component, False, 0.0, self._time, False, 0.0)
-        self._check("fmi3EnterInitializationMode", status, mark)
+        instance = self._require_instance("enter_initialization")
+        instance.enter_initialization_mode(float(start_time))
         self._initialized = True
+        self.last_successful_time = float(start_time)
 
     def exit_initialization(self) -> None:
-        self._require_instance("exit_initialization")
-        mark = len(self.messages)
-        status = self._raw["fmi3ExitInitializationMode"](self._component)
-        self._check("fmi3ExitInitializationMode", status, mark)
+        self._require_instance("exit_initialization").exit_initialization_mode()
 
     def configure(self, inputs: list[str], observed: list[str]) -> None:
         inputs, observed = list(inputs), list(observed)
         check_port_lists(self.name, self.ports, inputs, observed)
-        _, in_size = slot_layout(self.ports, inputs)
-        _, out_size = slot_layout(self.ports, observed)
-        self._bind(inputs, observed, np.zeros(in_size), np.zeros(out_size))
+        self.bind(inputs, observed)
 
-    def _bind(self, inputs: list[str], observed: list[str], in_buffer: np.ndarray, out_buffer: np.ndarray) -> None:
-        """Build the ports over float64 buffers laid out by :func:`slot_layout` (maybe shared memory)."""
-        self._require_instance("configure")
-        in_layout, _ = slot_layout(self.ports, inputs)
-        out_layout, _ = slot_layout(self.ports, observed)
-        self._inputs = {}
-        for name in inputs:
-            port = self.ports[name]
-            start, stop = in_layout[name]
-            slot = in_buffer[start:stop]
-            is_float64 = port.type == "Float64"
-            native = slot if is_float64 else np.zeros(port.size, dtype=NATIVE_DTYPES[port.type])
-            self._inputs[name] = _InputPort(
-                name=name, call=f"fmi3Set{port.type}({name})", size=port.size,
-                vr=_value_references([port.value_reference]), slot=slot, native=native,
-                pointer=_pointer(native, port.type), setter=self._raw[f"fmi3Set{port.type}"],
-                exact=port.type not in ("Float64", "Float32"))
-        self._input_list = [self._inputs[n] for n in inputs]
-        self._groups = []
-        by_type: dict[str, list[str]] = {}
-        for name in sorted(observed, key=lambda n: out_layout[n][0]):
-            by_type.setdefault(self.ports[name].type, []).append(name)
-        for fmi_type, names in by_type.items():
-            start, stop = out_layout[names[0]][0], out_layout[names[-1]][1]
-            slot = out_buffer[start:stop]
-            cast = fmi_type != "Float64"
-            native = np.zeros(stop - start, dtype=NATIVE_DTYPES[fmi_type]) if cast else slot
-            self._groups.append(_OutputGroup(
-                call=f"fmi3Get{fmi_type}({', '.join(names)})", count=len(names), size=stop - start,
-                vrs=_value_references([self.ports[n].value_reference for n in names]), slot=slot,
-                native=native, pointer=_pointer(native, fmi_type), getter=self._raw[f"fmi3Get{fmi_type}"],
-                cast=cast))
-        self._output_views = {name: out_buffer[a:b] for name, (a, b) in out_layout.items()}
+    def bind(self, inputs: list[str], observed: list[str], in_buffer: np.ndarray | None = None,
+             out_buffer: np.ndarray | None = None) -> None:
+        """Bind the ports over float64 buffers laid out by :func:`slot_layout` (new ones, or shared memory)."""
+        instance = self._require_instance("configure")
+        instance.bind(self.ports, inputs, observed, in_buffer, out_buffer)
+        self._input_slots = instance.input_slots
+        self._input_index = {name: i for i, name in enumerate(inputs)}
+        self._output_views = instance.output_views
+        self._input_ports = instance.input_ports
+        self._push_port = instance.push_port
         self._configured = True
+
+    def unbind(self) -> None:
+        if self.instance is not None:
+            self.instance.unbind()
+        self._input_slots, self._input_index, self._output_views, self._input_ports = {}, {}, {}, {}
+        self._push_port = self._not_ready
 
     # -- hot path ----------------------------------------------------------------------------------
     def set_inputs(self, values: dict[str, np.ndarray]) -> None:
-        inputs = self._inputs
+        ports = self._input_ports
+        push = self._push_port
         for name, value in values.items():
-            port = inputs.get(name)
+            port = ports.get(name)
             if port is None:
                 raise self._unconfigured_input(name)
             value = np.asarray(value, dtype=np.float64)
             if value.size != port.size:
                 raise ValueError(f"{self.name}.{name} expects {port.size} value(s), got {value.size}")
             np.copyto(port.slot, value.reshape(port.size))
-            self._push(port)
-
-    def _push(self, port: _InputPort) -> None:
-        """Write the values in ``port.slot`` to the FMU."""
-        mark = len(self.messages)
-        if port.native is not port.slot:
-            np.copyto(port.native, port.slot, casting="unsafe")
-            if port.exact and not np.array_equal(port.native, port.slot):
-                raise ValueError(f"{self.name}.{port.name} takes whole numbers"
-                                 f"{' (0 or 1)' if port.native.dtype == np.bool_ else ''}; got {port.slot.tolist()}")
-        status = port.setter(self._component, port.vr, 1, port.pointer, port.size)
-        if status or len(self.messages) != mark:
-            self._check(port.call, status, mark)
-
-    def _push_indices(self, indices) -> None:
-        """Write the inputs at ``indices`` of the configured input list (all when None)."""
-        ports = self._input_list if indices is None else [self._input_list[i] for i in indices]
-        for port in ports:
-            self._push(port)
-
-    def _pull(self) -> None:
-        """Read every observed port into the output buffer."""
-        component = self._component
-        if component is None:
-            self._require_instance("get_outputs")
-        for group in self._groups:
-            mark = len(self.messages)
-            status = group.getter(component, group.vrs, group.count, group.pointer, group.size)
-            if status or len(self.messages) != mark:
-                self._check(group.call, status, mark)
-            if group.cast:
-                np.copyto(group.slot, group.native, casting="unsafe")
+            push(port)
 
     def get_outputs(self) -> dict[str, np.ndarray]:
         self._pull()
         return {name: view.copy() for name, view in self._output_views.items()}
 
-    def _do_step(self, t: float, h: float) -> None:
-        if self._component is None:
-            self._require_instance("start_step")
-        self._time = t
-        mark = len(self.messages)
-        refs = self._step_refs
-        status = self._do_step_raw(self._component, t, h, True, refs[0], refs[1], refs[2], refs[3])
-        if status or len(self.messages) != mark:
-            self._check("fmi3DoStep", status, mark)
-        self._time = t + h
+    def step(self, t: float, h: float) -> StepResult:
+        """fmi3DoStep; records its out-flags in ``terminate_requested``, ``early_return`` and
+        ``last_successful_time`` and returns them all (see :class:`~orchestration.fmi3.StepResult`)."""
+        result = StepResult(*self._do_step(t, h))
+        _, self.terminate_requested, self.early_return, self.last_successful_time = result
+        return result
 
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
         if inputs:
             self.set_inputs(inputs)
-        self._do_step(t, h)
+        _, self.terminate_requested, self.early_return, self.last_successful_time = self._do_step(t, h)
 
     def finish_step(self) -> dict[str, np.ndarray]:
-        return self.get_outputs()
+        self._pull()
+        return self._output_views  # views of the output buffer: valid until the next step
 
     def wait_handle(self) -> None:
         return None
@@ -377,26 +309,31 @@ class InProcessFmu:
         if self._terminated:
             return
         self._terminated = True
-        if self._slave is not None and self._component is not None:
-            if self._initialized and not self._failed:
+        instance = self.instance
+        if instance is not None:
+            if self._initialized and not instance.failed and not instance.freed:
                 try:
-                    status = self._raw["fmi3Terminate"](self._component)
-                    if status > FMI_WARNING:
-                        logger.warning("%s: fmi3Terminate returned status %d", self.name, status)
+                    instance.terminate()
+                except FmuCallError as exc:
+                    logger.warning("%s: fmi3Terminate failed: %s", self.name, exc.reason)
                 except Exception as exc:  # terminate must never raise
                     logger.warning("%s: fmi3Terminate failed: %s", self.name, exc)
             try:
-                self._raw["fmi3FreeInstance"](self._component)
+                instance.free()
             except Exception as exc:
                 logger.warning("%s: fmi3FreeInstance failed: %s", self.name, exc)
-            self._component = None
+        self.unbind()
+        self._configured = False
+        self._do_step = self._pull = self._not_ready
         self._release_library()
-        self._inputs, self._input_list, self._groups, self._output_views = {}, [], [], {}
 
     def _release_library(self) -> None:
-        if self._slave is not None:
+        library, self._library = self._library, None
+        instance = self.instance
+        if library is not None and not (instance is not None and instance.fatal):
+            # after fmi3Fatal the instance is never freed: its library stays loaded
             try:
-                self._slave.freeLibrary()
+                library.close()
             except Exception as exc:
                 logger.warning("%s: unloading the FMU library failed: %s", self.name, exc)
         if self._unzip_dir is not None:
@@ -404,62 +341,49 @@ class InProcessFmu:
             self._unzip_dir = None
 
     # -- logging and errors ------------------------------------------------------------------------
-    def _on_log(self, environment, status, category, message) -> None:
-        text = message.decode("utf-8", "replace") if isinstance(message, bytes) else str(message)
-        self.messages.append((int(status), text))
-        if self._logger is not None:
-            self._logger.log(_LOG_LEVELS.get(int(status), logging.ERROR), "%s", text)
+    def _log(self, status: int, text: str) -> None:
+        self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)
 
-    def _logged_reason(self, mark: int) -> str:
-        """The last error (else warning) message logged since ``mark``, else the last error ever."""
-        recent = self.messages[mark:]
-        for threshold in (FMI_ERROR, FMI_WARNING):
-            for status, text in reversed(recent):
-                if status >= threshold:
-                    return text
-        for status, text in reversed(self.messages):
-            if status >= FMI_ERROR:
-                return text
-        return "the FMU logged no reason"
-
-    def _check(self, call: str, status: int, mark: int) -> None:
-        """Raise unless ``status`` is OK/Warning and no error-level message was logged since ``mark``.
-
-        An FMU that logs an error but returns OK from a call is reported at that call, where the
-        cause is, rather than at a later one.
-        """
-        if status > FMI_WARNING:
-            self._failed = True
-            raise FmuCallError(self.name, call, self._time, self._logged_reason(mark), status)
-        logged_error = max((s for s, _ in self.messages[mark:]), default=FMI_OK)
-        if logged_error >= FMI_ERROR:
-            raise FmuCallError(self.name, call, self._time, self._logged_reason(mark), logged_error)
-
-    def _checked(self, call: str, action, mark: int) -> None:
-        from fmpy.fmi1 import FMICallException
-
-        try:
-            action()
-        except FMICallException as exc:
-            self._failed = True
-            raise FmuCallError(self.name, call, self._time, self._logged_reason(mark), exc.status) from None
-        self._check(call, FMI_OK, mark)
-
-    def _require_instance(self, what: str) -> None:
-        if self._terminated:
-            raise RuntimeError(f"{self.name}: {what}() after terminate()")
-        if self._component is None:
-            raise RuntimeError(f"{self.name}: call instantiate() before {what}()")
+    def _not_ready(self, *args) -> None:
+        """Stands for the binding's hot-path calls before instantiate() and after terminate()."""
+        self._require_instance("start_step, finish_step or get_outputs")
+        raise RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
 
     def _unconfigured_input(self, name: str) -> Exception:
         if not self._configured:
+            self._require_instance("set_inputs")
             return RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
         return PortConfigurationError(f"{self.name}.{name} is not among the configured inputs "
-                                      f"({', '.join(self._inputs) or 'none'}): list it in configure()")
+                                      f"({', '.join(self._input_slots) or 'none'}): list it in configure()")
+
+    def _require_instance(self, what: str) -> Fmi3Instance:
+        if self._terminated:
+            raise RuntimeError(f"{self.name}: {what}() after terminate()")
+        if self.instance is None:
+            raise RuntimeError(f"{self.name}: call instantiate() before {what}()")
+        return self.instance
 
 
 def _convert_for_setter(component: str, port: PortInfo, value: object) -> list:
-    """``value`` as the list FMPy's setter for ``port.type`` takes; ValueError naming the port if it cannot be."""
+    """``value`` as the list :meth:`Fmi3Instance.set` takes for ``port.type``; PortConfigurationError
+    naming the port if it cannot be. Binary values are bytes or hex strings; an Enumeration takes
+    its values or its item names."""
+    if port.type == "Binary":
+        items = [value] if isinstance(value, (str, bytes, bytearray)) or not isinstance(
+            value, (list, tuple, np.ndarray)) else list(value)
+        out = []
+        for v in items:
+            if isinstance(v, (bytes, bytearray)):
+                out.append(bytes(v))
+                continue
+            try:
+                out.append(parse_binary(v) if isinstance(v, str) else None)
+            except ValueError:
+                out.append(None)
+            if out[-1] is None:
+                raise PortConfigurationError(f"{component}.{port.name} is a Binary parameter; got {v!r}: give bytes "
+                                             f"in hexadecimal, e.g. \"{(port.start or bytes([1, 171])).hex()}\"")
+        return out
     if port.type == "String":
         items = [value] if isinstance(value, str) or not isinstance(value, (list, tuple, np.ndarray)) else list(value)
         bad = [v for v in items if not isinstance(v, str)]
@@ -481,15 +405,23 @@ def _convert_for_setter(component: str, port: PortInfo, value: object) -> list:
             return [float(v) for v in items]
         except (TypeError, ValueError):
             raise PortConfigurationError(f"{component}.{port.name} is {port.type}; got {value!r}: give numbers") from None
-    if port.type in NATIVE_DTYPES:  # integer types
+    if port.type in INTEGER_RANGES:  # integer types and enumerations
         out = []
         for v in items:
+            if port.type == "Enumeration" and isinstance(v, str):
+                value = port.item_value(v)
+                if value is None:
+                    raise PortConfigurationError(
+                        f"{component}.{port.name} is the enumeration {port.declared_type}; {v!r} is not one of its items: "
+                        f"{', '.join(name for name, _ in port.items)}")
+                out.append(value)
+                continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) or int(v) != v:
                 raise PortConfigurationError(f"{component}.{port.name} is {port.type}; got {v!r}: give a whole number")
-            info = np.iinfo(NATIVE_DTYPES[port.type])
-            if not info.min <= int(v) <= info.max:
+            low, high = INTEGER_RANGES[port.type]
+            if not low <= int(v) <= high:
                 raise PortConfigurationError(f"{component}.{port.name} is {port.type}; {v!r} is out of its range "
-                                             f"[{info.min}, {info.max}]")
+                                             f"[{low}, {high}]")
             out.append(int(v))
         return out
     raise PortConfigurationError(f"{component}.{port.name}: setting {port.type} variables is not supported")

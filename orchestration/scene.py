@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from . import transitions as tr
-from .ports import NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo, read_fmu
+from .ports import (NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo, conversion_problem,
+                    parse_binary, read_fmu)
 
 logger = logging.getLogger(__name__)
 
@@ -196,6 +197,11 @@ def _type_matches(port: PortInfo, value) -> bool:
     values = np.ravel(np.asarray(value, dtype=object)) if isinstance(value, list) else [value]
     if port.type == "String":
         return all(isinstance(v, str) for v in values)
+    if port.type == "Binary":
+        return all(isinstance(v, str) and _is_hex(v) for v in values)
+    if port.type == "Enumeration":
+        return all((isinstance(v, int) and not isinstance(v, bool)) or (isinstance(v, str) and port.item_value(v) is not None)
+                   for v in values)
     if port.type == "Boolean":
         return all(isinstance(v, bool) for v in values)
     if port.type.startswith("Float"):
@@ -203,16 +209,45 @@ def _type_matches(port: PortInfo, value) -> bool:
     return all(isinstance(v, int) and not isinstance(v, bool) for v in values)
 
 
+def _is_hex(text: str) -> bool:
+    try:
+        parse_binary(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _expected(port: PortInfo) -> str:
+    """What a parameter of ``port``'s type is written as in a scene."""
+    if port.type == "Binary":
+        return "Binary values, written in hexadecimal (\"0a1bff\")"
+    if port.type == "Enumeration":
+        items = ", ".join(f"{name!r} ({value})" for name, value in port.items)
+        return f"Enumeration values: an item name or its value ({items})" if items else "Enumeration values (integers)"
+    return f"{port.type} values"
+
+
+def format_time(value: Fraction) -> str:
+    """A time as a scene writes it: a decimal when exact (0.002), else a ratio in quotes ("1/30")."""
+    d = value.denominator
+    while d % 2 == 0:
+        d //= 2
+    while d % 5 == 0:
+        d //= 5
+    if d == 1:
+        return repr(float(value)) if value.denominator != 1 else str(value.numerator)
+    return f'"{value.numerator}/{value.denominator}"'
+
+
 def _size_of(value) -> int:
     return int(np.asarray(value, dtype=object).size) if isinstance(value, list) else 1
 
 
-def _kind_of(port: PortInfo) -> str:
-    if port.type == "Boolean":
-        return "Boolean"
-    if port.type.startswith("Float"):
-        return "Float"
-    return "Integer"
+def _type_of(port: PortInfo) -> str:
+    """"Int32", or "Enumeration Mode" for an enumeration with its declared type."""
+    if port.type == "Enumeration" and port.declared_type:
+        return f"Enumeration {port.declared_type}"
+    return port.type
 
 
 # -- loading -------------------------------------------------------------------------------------
@@ -286,6 +321,9 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
             ref = _parse_endpoint(item, f"[summary] {key}[{i}]", problems)
             if ref and (ref[0] not in components or ref[1] not in components[ref[0]].ports):
                 problems.append(f"[summary] {key}[{i}]: {item!r} is not a port of the scene")
+            elif ref and components[ref[0]].ports[ref[1]].type not in NUMERIC_TYPES:
+                problems.append(f"[summary] {key}[{i}]: {item!r} is a {components[ref[0]].ports[ref[1]].type} variable; "
+                                "the summary takes numbers, Booleans and enumerations")
     if problems:
         raise SceneError(path, problems)
     return Scene(path=path, name=name, description=str(head.get("description", "")), duration=duration,
@@ -323,7 +361,10 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
         except (OSError, ValueError) as exc:
             problems.append(f"{where} path: {exc}")
             continue
+        fixed = description.fixed_internal_step
         step_value = table.get("step", description.default_step)
+        if step_value is None and fixed is not None:
+            step_value = format_time(fixed).strip('"')
         if step_value is None:
             problems.append(f"{where}: no step and the FMU declares no default step; add step = 0.001")
             continue
@@ -336,9 +377,13 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
                 problems.append(f"{where} parameters.internal_step = {given} differs from step = {step_value}; "
                                 "remove the parameter (the master sets it from step)")
             parameters["internal_step"] = float(step)
-        elif step is not None and description.default_step and abs(float(step) - description.default_step) > 1e-12:
-            problems.append(f"{where} step: this FMU's communication step is fixed at {description.default_step} s "
-                            f"and it has no internal_step parameter; use step = {description.default_step}")
+        elif step is not None and fixed is not None and step % fixed != 0:
+            # FMI 3.0: any communication step, unless the FMU computes in fixed internal steps
+            below = step // fixed * fixed
+            fixes = " or ".join(f"step = {format_time(s)}" for s in (below, below + fixed) if s > 0)
+            internal = format_time(fixed).strip('"')
+            problems.append(f"{where} step: {step_value} s is not a whole multiple of this FMU's fixed internal step "
+                            f"{internal} s (fixedInternalStepSize); use {fixes}")
         _check_parameters(where, parameters, ports, problems)
         hosting = table.get("hosting")
         if hosting is not None and hosting not in HOSTINGS:
@@ -359,7 +404,7 @@ def _check_parameters(where: str, parameters: dict, ports: dict[str, PortInfo], 
             problems.append(f"{where} parameters.{key}: is a {port.causality}, not settable")
             continue
         if not _type_matches(port, value):
-            problems.append(f"{where} parameters.{key}: expects {port.type} values (got {value!r})")
+            problems.append(f"{where} parameters.{key}: expects {_expected(port)} (got {value!r})")
             continue
         if port.is_array and _size_of(value) not in (port.size, 1):
             problems.append(f"{where} parameters.{key}: expects {port.size} values ({'x'.join(map(str, port.shape))}), "
@@ -453,17 +498,18 @@ def _load_connections(items, components: dict[str, ComponentSpec], problems: lis
             continue
         out_spec, in_spec = components[src[0]], components[dst[0]]
         out_port, in_port = out_spec.ports[src[1]], in_spec.ports[dst[1]]
-        if out_port.type not in NUMERIC_TYPES or in_port.type not in NUMERIC_TYPES:
-            problems.append(f"{where}: only numeric ports can be connected ({out_port.type} -> {in_port.type})")
-        elif _kind_of(out_port) != _kind_of(in_port):
-            problems.append(f"{where}: type mismatch, {out_port.describe()} -> {in_port.describe()}")
+        conversion = conversion_problem(out_port, in_port)
+        if conversion:
+            problems.append(f"{where}: type mismatch, {src[0]}.{src[1]} is {_type_of(out_port)} and {dst[0]}.{dst[1]} "
+                            f"is {_type_of(in_port)}: {conversion}")
         if out_port.size != in_port.size:
             hint = _size_hint(in_spec, in_port, out_port)
             problems.append(f"{where}: size mismatch, {out_port.size} values "
                             f"({'x'.join(map(str, out_port.shape)) or 'scalar'}) -> {in_port.size} "
                             f"({'x'.join(map(str, in_port.shape)) or 'scalar'}){hint}")
         if out_port.unit and in_port.unit and out_port.unit != in_port.unit:
-            problems.append(f"{where}: unit mismatch, {out_port.unit} -> {in_port.unit}")
+            problems.append(f"{where}: unit mismatch, {out_port.unit} -> {in_port.unit} ({src[0]}.{src[1]} is in "
+                            f"{out_port.unit}, {dst[0]}.{dst[1]} in {in_port.unit}); the master converts no units")
         key = (dst[0], dst[1])
         if key in targets:
             problems.append(f"{where}: {dst[0]}.{dst[1]} is already driven by {targets[key]}; an input has one source")
@@ -610,7 +656,8 @@ def _load_record(table: dict, components: dict, problems: list[str]):
                 if info is None:
                     problems.append(f"[record] {key}: no port {port!r}")
                 elif info.type not in NUMERIC_TYPES:
-                    problems.append(f"[record] {key}.{port}: only numeric ports can be recorded")
+                    problems.append(f"[record] {key}.{port}: a {info.type} variable cannot be recorded; the CSV records "
+                                    "numbers, Booleans and enumerations (their values)")
                 elif info.size > 64:
                     problems.append(f"[record] {key}.{port}: {info.size} values is too many for a CSV column set; "
                                     "record surfaces with [[record.surfaces]]")

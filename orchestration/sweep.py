@@ -51,6 +51,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from .errors import signal_name
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["SweepResult", "SweepConfigError", "run_sweep", "load_results", "results_table",
@@ -330,11 +332,7 @@ def _death_reason(returncode: int | None) -> str:
     if returncode is None:
         return "worker process died (exit status unknown)"
     if returncode < 0:
-        try:
-            name = signal.Signals(-returncode).name
-        except ValueError:
-            name = str(-returncode)
-        return f"worker process died (signal {name})"
+        return f"worker process died (signal {signal_name(-returncode)})"
     return f"worker process died (exit code {returncode})"
 
 

@@ -1,11 +1,12 @@
 """Hosting an FMU in its own process, so that a crashing FMU cannot take the master down.
 
 The worker (a "spawn" child) runs an :class:`~orchestration.hosting.InProcessFmu`. Commands and
-replies are tiny tuples over a ``multiprocessing.Pipe``; every value array moves through one
-``SharedMemory`` block allocated by ``configure``: ``[inputs | observed outputs]`` as float64
-slots laid out by :func:`~orchestration.hosting.slot_layout`. A step is: the master writes the
-inputs into their slots and sends ``("step", t, h, which)``; the worker pushes those slots into
-the FMU, steps, reads the observed outputs into their slots and replies. No array is pickled.
+replies are tiny tuples over a ``multiprocessing.Pipe`` (the protocol: :class:`Command` and
+:class:`Reply`, below); every value array moves through one ``SharedMemory`` block allocated by
+``configure``: ``[inputs | observed outputs]`` as float64 slots laid out by
+:func:`~orchestration.hosting.slot_layout`. A step is: the master writes the inputs into their
+slots and sends ``(STEP, t, h, which)``; the worker pushes those slots into the FMU, steps, reads
+the observed outputs into their slots and replies with fmi3DoStep's flags. No array is pickled.
 
 Each reply carries the FMU's log messages since the previous one; they land in ``messages`` and
 the ``orchestration.fmu.<name>`` logger of the master. While waiting, the master watches the
@@ -24,8 +25,8 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
-from .errors import FmuCallError, OrchestrationError, WorkerCrash
-from .hosting import _LOG_LEVELS, InProcessFmu, check_port_lists, slot_layout
+from .errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
+from .hosting import InProcessFmu, check_port_lists, slot_layout, write_inputs
 from .ports import FmuDescription, PortInfo
 
 logger = logging.getLogger(__name__)
@@ -36,15 +37,46 @@ _LIVENESS_INTERVAL_MS = 500
 _SHUTDOWN_TIMEOUT = 10.0
 
 
-def _exit_description(exitcode: int | None) -> str:
-    if exitcode is None:
-        return "exit status unknown"
-    if exitcode < 0:
-        try:
-            return f"killed by signal {signal.Signals(-exitcode).name}"
-        except ValueError:
-            return f"killed by signal {-exitcode}"
-    return f"exited with code {exitcode}"
+class Command:
+    """Master -> worker messages: ``(kind, *arguments)``; each is answered by one reply.
+
+    ========================  ==========================================  =================================
+    kind                      arguments                                   reply payload
+    ========================  ==========================================  =================================
+    INSTANTIATE               -                                           None
+    SET_VALUES                {name: value}                               None
+    GET_VALUES                [name, ...]                                 {name: float64 array}
+    GET_NATIVE                [name, ...]                                 {name: array, [str] or [bytes]}
+    ENTER_INITIALIZATION      start time                                  None
+    EXIT_INITIALIZATION       -                                           None
+    CONFIGURE                 shared memory name, inputs, observed        None
+    SET_INPUTS                input indices (None: all)                   None (values are in the slots)
+    GET_OUTPUTS               -                                           None (values are in the slots)
+    STEP                      t, h, input indices (None: all, (): none)   (terminate_requested, early_return,
+                                                                           last_successful_time)
+    TERMINATE                 -                                           None, then the worker exits
+    ========================  ==========================================  =================================
+    """
+
+    INSTANTIATE = "instantiate"
+    SET_VALUES = "set_values"
+    GET_VALUES = "get_values"
+    GET_NATIVE = "get_native"
+    ENTER_INITIALIZATION = "enter_initialization"
+    EXIT_INITIALIZATION = "exit_initialization"
+    CONFIGURE = "configure"
+    SET_INPUTS = "set_inputs"
+    GET_OUTPUTS = "get_outputs"
+    STEP = "step"
+    TERMINATE = "terminate"
+
+
+class Reply:
+    """Worker -> master messages: ``(kind, payload, messages)``, ``messages`` the FMU's log since the
+    previous reply as ``((status, text), ...)``. The worker first sends ``(OK, None, ())`` once it runs."""
+
+    OK = "ok"        # payload: the command's result
+    RAISE = "raise"  # payload: the exception, raised in the master
 
 
 class WorkerFmu:
@@ -60,6 +92,9 @@ class WorkerFmu:
         self.ports: dict[str, PortInfo] = dict(description.ports)
         self.messages: list[tuple[int, str]] = []
         self.start_timeout = float(start_timeout)
+        self.terminate_requested = False
+        self.early_return = False
+        self.last_successful_time = 0.0
         self._logger = logging.getLogger(f"orchestration.fmu.{name}")
         self._process = None
         self._conn = None
@@ -90,20 +125,25 @@ class WorkerFmu:
         child_end.close()  # so that the worker's death reads as end-of-file here
         self._conn = parent_end
         self._receive("start worker", timeout=self.start_timeout)
-        self._call("fmi3InstantiateCoSimulation", ("instantiate",))
+        self._call("fmi3InstantiateCoSimulation", (Command.INSTANTIATE,))
 
     def set_values(self, values: dict[str, object]) -> None:
-        self._call("set_values", ("set_values", dict(values)))
+        self._call("set_values", (Command.SET_VALUES, dict(values)))
 
     def get_values(self, names: list[str]) -> dict[str, np.ndarray]:
-        return self._call("get_values", ("get_values", list(names)))
+        return self._call("get_values", (Command.GET_VALUES, list(names)))
+
+    def get_native(self, names: list[str]) -> dict[str, object]:
+        """Values in the FMU's own types (see :meth:`InProcessFmu.get_native`)."""
+        return self._call("get_native", (Command.GET_NATIVE, list(names)))
 
     def enter_initialization(self, start_time: float) -> None:
         self._time = float(start_time)
-        self._call("fmi3EnterInitializationMode", ("enter_initialization", self._time))
+        self._call("fmi3EnterInitializationMode", (Command.ENTER_INITIALIZATION, self._time))
+        self.last_successful_time = self._time
 
     def exit_initialization(self) -> None:
-        self._call("fmi3ExitInitializationMode", ("exit_initialization",))
+        self._call("fmi3ExitInitializationMode", (Command.EXIT_INITIALIZATION,))
 
     def configure(self, inputs: list[str], observed: list[str]) -> None:
         inputs, observed = list(inputs), list(observed)
@@ -120,41 +160,28 @@ class WorkerFmu:
         self._input_slots = {name: block[a:b] for name, (a, b) in in_layout.items()}
         self._output_views = {name: block[in_size + a:in_size + b] for name, (a, b) in out_layout.items()}
         del block
-        self._call("configure", ("configure", self._shm.name, inputs, observed))
+        self._call("configure", (Command.CONFIGURE, self._shm.name, inputs, observed))
 
     # -- hot path ----------------------------------------------------------------------------------
     def _write_inputs(self, values: dict[str, np.ndarray]):
         """Copy ``values`` into their slots; return what the worker must push (None: all inputs)."""
-        slots = self._input_slots
-        for name, value in values.items():
-            slot = slots.get(name)
-            if slot is None:
-                raise ValueError(f"{self.name}.{name} is not among the configured inputs "
-                                 f"({', '.join(self._inputs) or 'none'}): list it in configure()")
-            value = np.asarray(value, dtype=np.float64)
-            if value.size != slot.size:
-                raise ValueError(f"{self.name}.{name} expects {slot.size} value(s), got {value.size}")
-            np.copyto(slot, value.reshape(slot.size))
-        if len(values) == len(self._inputs):
-            return None
-        index = self._input_index
-        return tuple(index[name] for name in values)
+        return write_inputs(self.name, self._input_slots, self._input_index, values)
 
     def set_inputs(self, values: dict[str, np.ndarray]) -> None:
         self._require_idle("set_inputs")
         which = self._write_inputs(values)
-        self._call("set_inputs", ("set_inputs", which))
+        self._call("set_inputs", (Command.SET_INPUTS, which))
 
     def get_outputs(self) -> dict[str, np.ndarray]:
         self._require_idle("get_outputs")
-        self._call("get_outputs", ("get_outputs",))
+        self._call("get_outputs", (Command.GET_OUTPUTS,))
         return {name: view.copy() for name, view in self._output_views.items()}
 
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
         self._require_idle("start_step")
         which = self._write_inputs(inputs) if inputs else ()
         self._time = t
-        self._send("fmi3DoStep", ("step", t, h, which))
+        self._send("fmi3DoStep", (Command.STEP, t, h, which))
         self._pending = ("fmi3DoStep", t + h)
 
     def finish_step(self) -> dict[str, np.ndarray]:
@@ -162,9 +189,9 @@ class WorkerFmu:
             raise RuntimeError(f"{self.name}: finish_step() without start_step()")
         call, t_end = self._pending
         self._pending = None
-        self._receive(call)
-        self._time = t_end
-        return {name: view.copy() for name, view in self._output_views.items()}
+        self.terminate_requested, self.early_return, self.last_successful_time = self._receive(call)
+        self._time = self.last_successful_time
+        return self._output_views  # views of the shared block: valid until the next step
 
     def wait_handle(self):
         """The pipe: readable when the step is done (or the worker died)."""
@@ -188,7 +215,7 @@ class WorkerFmu:
                         self._receive("fmi3DoStep", timeout=_SHUTDOWN_TIMEOUT)
                     except FmuCallError:
                         pass
-                conn.send(("terminate",))
+                conn.send((Command.TERMINATE,))
                 self._receive("fmi3Terminate", timeout=_SHUTDOWN_TIMEOUT)
         except Exception as exc:  # terminate never raises: the worker is killed below if need be
             logger.warning("%s: clean worker shutdown failed: %s", self.name, exc)
@@ -268,8 +295,8 @@ class WorkerFmu:
             raise self._crashed(call) from None
         for status, text in messages:
             self.messages.append((status, text))
-            self._logger.log(_LOG_LEVELS.get(status, logging.ERROR), "%s", text)
-        if kind == "raise":
+            self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)
+        if kind == Reply.RAISE:
             raise payload
         return payload
 
@@ -282,7 +309,7 @@ class WorkerFmu:
                 process.join(2.0)
                 exitcode = process.exitcode
             pid = process.pid if process is not None else "?"
-            self._crash_reason = f"the worker process (pid {pid}) died: {_exit_description(exitcode)}"
+            self._crash_reason = f"the worker process (pid {pid}) died: {exit_description(exitcode)}"
         return WorkerCrash(self.name, call, self._time, self._crash_reason)
 
     def _require_worker(self, call: str) -> None:
@@ -313,11 +340,11 @@ class _WorkerState:
         _, out_size = slot_layout(ports, observed)
         self.shm = SharedMemory(name=shm_name)
         block = np.ndarray((in_size + out_size,), dtype=np.float64, buffer=self.shm.buf)
-        self.host._bind(inputs, observed, block[:in_size], block[in_size:])
+        self.host.bind(inputs, observed, block[:in_size], block[in_size:])
 
     def detach(self) -> None:
         if self.shm is not None:
-            self.host._inputs, self.host._input_list, self.host._groups, self.host._output_views = {}, [], [], {}
+            self.host.unbind()
             try:
                 self.shm.close()
             except BufferError:  # a view is still alive; the mapping goes with the process
@@ -326,23 +353,31 @@ class _WorkerState:
 
 
 def _worker_main(conn, name: str, description: FmuDescription) -> None:
-    """Serve commands until "terminate" or until the master goes away."""
+    """Serve commands until TERMINATE or until the master goes away."""
     # Ctrl-C in the terminal reaches the whole process group: the master handles it and shuts
     # the worker down, so the worker must not die of it first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     state = _WorkerState(name, description)
     host = state.host
+
+    def push(which):
+        host.instance.push(which)
+
+    def pull():
+        host.instance.pull()
+
     handlers = {
-        "instantiate": lambda: host.instantiate(),
-        "set_values": lambda values: host.set_values(values),
-        "enter_initialization": lambda t: host.enter_initialization(t),
-        "exit_initialization": lambda: host.exit_initialization(),
-        "configure": lambda shm_name, inputs, observed: state.configure(shm_name, inputs, observed),
-        "set_inputs": lambda which: host._push_indices(which),
-        "get_outputs": lambda: host._pull(),
-        "get_values": lambda names: host.get_values(names),
+        Command.INSTANTIATE: lambda: host.instantiate(),
+        Command.SET_VALUES: lambda values: host.set_values(values),
+        Command.GET_VALUES: lambda names: host.get_values(names),
+        Command.GET_NATIVE: lambda names: host.get_native(names),
+        Command.ENTER_INITIALIZATION: lambda t: host.enter_initialization(t),
+        Command.EXIT_INITIALIZATION: lambda: host.exit_initialization(),
+        Command.CONFIGURE: lambda shm_name, inputs, observed: state.configure(shm_name, inputs, observed),
+        Command.SET_INPUTS: push,
+        Command.GET_OUTPUTS: pull,
     }
-    conn.send(("ok", None, ()))
+    conn.send((Reply.OK, None, ()))
     while True:
         try:
             message = conn.recv()
@@ -350,25 +385,26 @@ def _worker_main(conn, name: str, description: FmuDescription) -> None:
             break
         command = message[0]
         try:
-            if command == "step":
+            if command == Command.STEP:
                 _, t, h, which = message
+                instance = host.instance
                 if which != ():
-                    host._push_indices(which)
-                host._do_step(t, h)
-                host._pull()
-                payload = None
-            elif command == "terminate":
+                    instance.push(which)
+                result = host.step(t, h)
+                instance.pull()
+                payload = (result.terminate_requested, result.early_return, result.last_successful_time)
+            elif command == Command.TERMINATE:
                 break
             else:
                 payload = handlers[command](*message[1:])
-            kind = "ok"
+            kind = Reply.OK
         except Exception as exc:  # sent to the master, raised there
-            kind, payload = "raise", exc
+            kind, payload = Reply.RAISE, exc
         _reply(conn, kind, payload, host)
     state.detach()
     host.terminate()
     try:
-        _reply(conn, "ok", None, host)
+        _reply(conn, Reply.OK, None, host)
     except (OSError, ValueError):
         pass
     conn.close()
@@ -385,5 +421,5 @@ def _reply(conn, kind: str, payload, host: InProcessFmu) -> None:
         raise
     except Exception as exc:  # an exception that cannot be pickled
         error = OrchestrationError(f"{host.name}: {type(payload).__name__}: {payload} (raised in the worker)")
-        conn.send(("raise", error, messages))
+        conn.send((Reply.RAISE, error, messages))
         logger.debug("unpicklable reply %r: %s", payload, exc)

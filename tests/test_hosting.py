@@ -78,7 +78,7 @@ def run_contact(kind: str, fmu: Path, steps: int = 200) -> list[dict[str, np.nda
         results = []
         for k in range(steps):
             host.start_step(k * 0.001, 0.001, {"tool_positions": scripted_tool(k)})
-            results.append(host.finish_step())
+            results.append({k: v.copy() for k, v in host.finish_step().items()})  # valid until the next step
     return results
 
 

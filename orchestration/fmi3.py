@@ -1,0 +1,654 @@
+"""A thin typed binding over the FMI 3.0 Co-Simulation C API (ctypes), used by every FMU host.
+
+Two classes:
+
+* :class:`Fmi3Library`: the shared library of an extracted FMU, with a ctypes signature for each
+  FMI 3.0 function an importer of Co-Simulation FMUs calls; ``close()`` unloads it.
+* :class:`Fmi3Instance`: one Co-Simulation instance. Lifecycle calls (configuration and
+  initialization modes, ``terminate``, ``free``), typed ``get``/``set`` for every FMI 3.0 variable
+  type (numeric, Boolean, Enumeration, String, Binary), and ``do_step`` returning its out-flags.
+  The hot path works over float64 buffers: ``bind(ports, inputs, observed)`` lays the ports out
+  in two buffers (:func:`slot_layout`; they may be shared memory), ``push`` writes input slots to
+  the FMU, ``do_step`` steps, ``pull`` reads every observed port into the output buffer. Value
+  reference arrays, native buffers and pointers are built once by ``bind``; a step makes no
+  Python list.
+
+One error path: a call that returns fmi3Discard/Error/Fatal, or after which the FMU logged an
+error, raises :class:`~orchestration.errors.FmuCallError` carrying the function (with the
+variables it was about), the simulated time, the status and the reason the FMU logged. The log
+messages themselves are collected in ``messages`` as ``(status, text)``.
+
+fmi3DoStep's out-flags: ``do_step`` returns them as a tuple (field names: :class:`StepResult`). An fmi3Discard together with
+``terminateSimulation`` is the FMU ending the simulation, not an error: it is returned like any
+other step (``terminate_requested`` set), and ``fmi3Terminate`` stays allowed. An fmi3Discard
+without it raises (the orchestrator does not retry a step with a smaller size).
+
+Values cross the hot path as float64: integer types up to 32 bits and Booleans exactly; a 64-bit
+integer (or enumeration) value beyond 2**53 is refused when read rather than rounded.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import platform
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Mapping, NamedTuple, Sequence
+
+import numpy as np
+
+from .errors import FMI_DISCARD, FMI_ERROR, FMI_FATAL, FMI_OK, FMI_WARNING, FmuCallError
+
+# -- C types ---------------------------------------------------------------------------------------
+c_instance = ctypes.c_void_p
+c_status = ctypes.c_int
+c_vr = ctypes.c_uint32
+c_vr_p = ctypes.POINTER(c_vr)
+c_bool_p = ctypes.POINTER(ctypes.c_bool)
+c_double_p = ctypes.POINTER(ctypes.c_double)
+c_binary = ctypes.POINTER(ctypes.c_uint8)
+
+LogMessageCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_char_p)
+IntermediateUpdateCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_double, ctypes.c_bool, ctypes.c_bool,
+                                              ctypes.c_bool, ctypes.c_bool, c_bool_p, c_double_p)
+
+#: FMI variable type -> (the C functions' suffix, ctypes type, numpy dtype) for the types that are
+#: moved as numbers. Enumerations are Int64 values (fmi3GetInt64/fmi3SetInt64).
+_NUMERIC: dict[str, tuple[str, type, type]] = {
+    "Float32": ("Float32", ctypes.c_float, np.float32),
+    "Float64": ("Float64", ctypes.c_double, np.float64),
+    "Int8": ("Int8", ctypes.c_int8, np.int8),
+    "UInt8": ("UInt8", ctypes.c_uint8, np.uint8),
+    "Int16": ("Int16", ctypes.c_int16, np.int16),
+    "UInt16": ("UInt16", ctypes.c_uint16, np.uint16),
+    "Int32": ("Int32", ctypes.c_int32, np.int32),
+    "UInt32": ("UInt32", ctypes.c_uint32, np.uint32),
+    "Int64": ("Int64", ctypes.c_int64, np.int64),
+    "UInt64": ("UInt64", ctypes.c_uint64, np.uint64),
+    "Boolean": ("Boolean", ctypes.c_bool, np.bool_),
+    "Enumeration": ("Int64", ctypes.c_int64, np.int64),
+}
+#: FMI type -> numpy dtype of its native buffer, for every type the hot path moves.
+NATIVE_DTYPES = {name: dtype for name, (_, _, dtype) in _NUMERIC.items()}
+#: Types whose values float64 holds exactly only up to 2**53 in magnitude.
+_WIDE_TYPES = ("Int64", "UInt64", "Enumeration")
+_EXACT_INTEGER = 2 ** 53
+#: Every FMI 3.0 variable type the binding can get and set.
+VALUE_TYPES = tuple(_NUMERIC) + ("String", "Binary")
+
+
+def function_suffix(fmi_type: str) -> str:
+    """The suffix of the get/set functions of ``fmi_type`` ("Int64" for an Enumeration)."""
+    if fmi_type in _NUMERIC:
+        return _NUMERIC[fmi_type][0]
+    if fmi_type in ("String", "Binary"):
+        return fmi_type
+    raise ValueError(f"FMI type {fmi_type!r} has no get/set functions here (types: {', '.join(VALUE_TYPES)})")
+
+
+# -- signatures ------------------------------------------------------------------------------------
+def _signatures() -> dict[str, tuple[object, list]]:
+    size = ctypes.c_size_t
+    sig: dict[str, tuple[object, list]] = {
+        "fmi3GetVersion": (ctypes.c_char_p, []),
+        "fmi3SetDebugLogging": (c_status, [c_instance, ctypes.c_bool, size, ctypes.POINTER(ctypes.c_char_p)]),
+        "fmi3InstantiateCoSimulation": (c_instance, [
+            ctypes.c_char_p, ctypes.c_char_p, ctypes.c_char_p,   # instanceName, instantiationToken, resourcePath
+            ctypes.c_bool, ctypes.c_bool,                        # visible, loggingOn
+            ctypes.c_bool, ctypes.c_bool,                        # eventModeUsed, earlyReturnAllowed
+            c_vr_p, size,                                        # requiredIntermediateVariables
+            ctypes.c_void_p, LogMessageCallback, IntermediateUpdateCallback]),
+        "fmi3FreeInstance": (None, [c_instance]),
+        "fmi3EnterInitializationMode": (c_status, [c_instance, ctypes.c_bool, ctypes.c_double, ctypes.c_double,
+                                                   ctypes.c_bool, ctypes.c_double]),
+        "fmi3ExitInitializationMode": (c_status, [c_instance]),
+        "fmi3EnterConfigurationMode": (c_status, [c_instance]),
+        "fmi3ExitConfigurationMode": (c_status, [c_instance]),
+        "fmi3Terminate": (c_status, [c_instance]),
+        "fmi3Reset": (c_status, [c_instance]),
+        "fmi3DoStep": (c_status, [c_instance, ctypes.c_double, ctypes.c_double, ctypes.c_bool,
+                                  c_bool_p, c_bool_p, c_bool_p, c_double_p]),
+        "fmi3GetString": (c_status, [c_instance, c_vr_p, size, ctypes.POINTER(ctypes.c_char_p), size]),
+        "fmi3SetString": (c_status, [c_instance, c_vr_p, size, ctypes.POINTER(ctypes.c_char_p), size]),
+        "fmi3GetBinary": (c_status, [c_instance, c_vr_p, size, ctypes.POINTER(size), ctypes.POINTER(c_binary), size]),
+        "fmi3SetBinary": (c_status, [c_instance, c_vr_p, size, ctypes.POINTER(size), ctypes.POINTER(c_binary), size]),
+        "fmi3GetFMUState": (c_status, [c_instance, ctypes.POINTER(ctypes.c_void_p)]),
+        "fmi3SetFMUState": (c_status, [c_instance, ctypes.c_void_p]),
+        "fmi3FreeFMUState": (c_status, [c_instance, ctypes.POINTER(ctypes.c_void_p)]),
+    }
+    for suffix, ctype, _ in {v[0]: v for v in _NUMERIC.values()}.values():
+        pointer = ctypes.POINTER(ctype)
+        sig[f"fmi3Get{suffix}"] = (c_status, [c_instance, c_vr_p, size, pointer, size])
+        sig[f"fmi3Set{suffix}"] = (c_status, [c_instance, c_vr_p, size, pointer, size])
+    return sig
+
+
+SIGNATURES = _signatures()
+
+
+def platform_tuple() -> str:
+    """The FMI 3.0 platform tuple of this machine, e.g. "x86_64-linux"."""
+    machine = platform.machine().lower()
+    machine = {"amd64": "x86_64", "arm64": "aarch64"}.get(machine, machine)
+    system = {"linux": "linux", "darwin": "darwin", "win32": "windows", "cygwin": "windows"}.get(sys.platform,
+                                                                                                  sys.platform)
+    return f"{machine}-{system}"
+
+
+def _library_extension() -> str:
+    return {"darwin": ".dylib", "win32": ".dll"}.get(sys.platform, ".so")
+
+
+def _unload(handle: int) -> None:
+    if sys.platform == "win32":  # pragma: no cover - only Linux is built and tested
+        ctypes.windll.kernel32.FreeLibrary(ctypes.c_void_p(handle))
+    else:
+        dlclose = ctypes.CDLL(None).dlclose
+        dlclose.argtypes = [ctypes.c_void_p]
+        dlclose(handle)
+
+
+class Fmi3Library:
+    """The shared library of one extracted FMU with typed FMI 3.0 functions.
+
+    Functions the library does not export are left out of ``functions``; calling one raises
+    :class:`FmuCallError` through :meth:`Fmi3Instance.call`.
+    """
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"no FMU binary {self.path} (this machine's platform is {platform_tuple()})")
+        self._dll = ctypes.CDLL(str(self.path))
+        self._handle: int | None = self._dll._handle
+        self.functions: dict[str, object] = {}
+        for name, (restype, argtypes) in SIGNATURES.items():
+            try:
+                function = getattr(self._dll, name)
+            except AttributeError:
+                continue
+            function.restype = restype
+            function.argtypes = argtypes
+            self.functions[name] = function
+
+    @classmethod
+    def from_extracted(cls, unzip_dir: Path | str, model_identifier: str) -> Fmi3Library:
+        """The binary of ``model_identifier`` for this platform in an extracted FMU."""
+        path = Path(unzip_dir) / "binaries" / platform_tuple() / f"{model_identifier}{_library_extension()}"
+        return cls(path)
+
+    def version(self) -> str:
+        function = self.functions.get("fmi3GetVersion")
+        return function().decode() if function is not None else "unknown"
+
+    def close(self) -> None:
+        """Unload the library (idempotent). No instance of it may be used afterwards."""
+        handle, self._handle = self._handle, None
+        self.functions = {}
+        if handle is not None:
+            self._dll = None
+            _unload(handle)
+
+
+# -- results and port records of the hot path ------------------------------------------------------
+class StepResult(NamedTuple):
+    """fmi3DoStep's out-arguments, in the order :meth:`Fmi3Instance.do_step` returns them (as a plain
+    tuple, which is cheaper to make on the hot path: ``StepResult(*flags)`` names them)."""
+
+    event_handling_needed: bool
+    terminate_requested: bool
+    early_return: bool
+    last_successful_time: float
+
+
+class PortLike:  # documentation only: what bind() reads of a port
+    type: str
+    value_reference: int
+    size: int
+
+
+def slot_layout(ports: Mapping[str, PortLike], names: Sequence[str]) -> tuple[dict[str, tuple[int, int]], int]:
+    """Offsets ``name -> (start, stop)`` in one float64 buffer, grouped by type (Float64 first), and its size.
+
+    A pure function of the port lists, so that two processes lay out the same shared buffer alike.
+    """
+    order = sorted(range(len(names)), key=lambda i: (ports[names[i]].type != "Float64", ports[names[i]].type, i))
+    layout, offset = {}, 0
+    for i in order:
+        size = ports[names[i]].size
+        layout[names[i]] = (offset, offset + size)
+        offset += size
+    return layout, offset
+
+
+def _exact_in_float64(values: np.ndarray) -> bool:
+    """Whether every integer in ``values`` is one float64 holds exactly (|v| <= 2**53), compared as integers."""
+    if not values.size:
+        return True
+    if int(values.max()) > _EXACT_INTEGER:
+        return False
+    return values.dtype.kind == "u" or int(values.min()) >= -_EXACT_INTEGER
+
+
+def _value_references(vrs: Sequence[int]):
+    return (c_vr * len(vrs))(*vrs)
+
+
+def _pointer(array: np.ndarray, fmi_type: str):
+    return array.ctypes.data_as(ctypes.POINTER(_NUMERIC[fmi_type][1]))
+
+
+@dataclass(slots=True)
+class _InputPort:
+    """A writable port: its float64 slot and, for other types, the native buffer it is cast to."""
+
+    name: str
+    call: str
+    size: int
+    vr: object
+    slot: np.ndarray
+    native: np.ndarray
+    pointer: object
+    setter: object
+    exact: bool   # integer and Boolean values must survive the cast unchanged
+    cast: bool    # native is not slot
+
+
+@dataclass(slots=True)
+class _OutputGroup:
+    """Observed ports of one type, read with one call into ``native`` then cast into ``slot``."""
+
+    call: str
+    count: int
+    size: int
+    vrs: object
+    slot: np.ndarray
+    native: np.ndarray
+    pointer: object
+    getter: object
+    cast: bool
+    wide: bool    # 64-bit integers: checked to fit float64 exactly
+    names: tuple
+
+
+# -- the instance ----------------------------------------------------------------------------------
+class Fmi3Instance:
+    """One FMI 3.0 Co-Simulation instance of a loaded :class:`Fmi3Library`.
+
+    ``messages`` (a list given by the caller or a new one) collects every log message as
+    ``(status, text)``; ``on_message(status, text)`` is called for each as well. ``time`` is the
+    simulated time errors are reported at (set by ``enter_initialization_mode`` and ``do_step``).
+    Instantiation failure raises :class:`FmuCallError` naming fmi3InstantiateCoSimulation.
+    """
+
+    def __init__(self, library: Fmi3Library, name: str, instantiation_token: str, resource_path: str | None, *,
+                 messages: list | None = None, on_message: Callable[[int, str], None] | None = None,
+                 logging_on: bool = True, visible: bool = False):
+        self.library = library
+        self.name = name
+        self.messages: list[tuple[int, str]] = messages if messages is not None else []
+        self.time: float | None = None
+        #: after fmi3Error the instance is in the Error mode (no fmi3Terminate); after fmi3Fatal no call at all
+        self.failed = False
+        self.fatal = False
+        self._on_message = on_message
+        self._functions = library.functions
+        self._do_step_raw = library.functions.get("fmi3DoStep") or self._no_do_step
+        self._log_callback = LogMessageCallback(self._log)       # kept alive as long as the instance
+        self._update_callback = IntermediateUpdateCallback()       # NULL: no intermediate updates
+        self._handle: ctypes.c_void_p | None = None
+        self._live: ctypes.c_void_p | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
+        self._inputs: list[_InputPort] = []
+        self._input_ports: dict[str, _InputPort] = {}
+        self._input_index: dict[str, int] = {}
+        self._groups: list[_OutputGroup] = []
+        self.input_slots: dict[str, np.ndarray] = {}
+        self.output_views: dict[str, np.ndarray] = {}
+        # fmi3DoStep's out-arguments, allocated once
+        # (terminateSimulation and earlyReturn side by side, so that one read of a 16-bit word tells
+        # whether either is set)
+        self._event = ctypes.c_bool()
+        self._stop_flags = (ctypes.c_bool * 2)()
+        self._stop_word = ctypes.c_uint16.from_buffer(self._stop_flags)
+        self._last_time = ctypes.c_double()
+        address = ctypes.addressof(self._stop_flags)
+        self._step_refs = (ctypes.pointer(self._event), ctypes.cast(address, c_bool_p),
+                           ctypes.cast(address + 1, c_bool_p), ctypes.pointer(self._last_time))
+        instantiate = self._function("fmi3InstantiateCoSimulation")
+        mark = len(self.messages)
+        address = instantiate(name.encode(), instantiation_token.encode(),
+                              resource_path.encode() if resource_path is not None else None,
+                              visible, logging_on, False, False, None, 0, None,
+                              self._log_callback, self._update_callback)
+        if not address:
+            reason = self._logged_reason(mark) if len(self.messages) > mark else "it returned NULL and logged no reason"
+            raise FmuCallError(name, "fmi3InstantiateCoSimulation", None, reason)
+        self._handle = self._live = ctypes.c_void_p(address)
+
+    # -- errors ------------------------------------------------------------------------------------
+    def _log(self, environment, status, category, message) -> None:
+        try:
+            text = message.decode("utf-8", "replace") if message is not None else ""
+            self.messages.append((int(status), text))
+            if self._on_message is not None:
+                self._on_message(int(status), text)
+        except Exception:  # never raise into the FMU's C code
+            pass
+
+    def _logged_reason(self, mark: int) -> str:
+        """The last error (else warning) message logged since ``mark``, else the last error ever."""
+        recent = self.messages[mark:]
+        for threshold in (FMI_ERROR, FMI_WARNING):
+            for status, text in reversed(recent):
+                if status >= threshold:
+                    return text
+        for status, text in reversed(self.messages):
+            if status >= FMI_ERROR:
+                return text
+        return "the FMU logged no reason"
+
+    def _check(self, call: str, status: int, mark: int) -> None:
+        """Raise unless ``status`` is OK/Warning and no error-level message was logged since ``mark``.
+
+        An FMU that logs an error but returns OK from a call is reported at that call, where the
+        cause is, rather than at a later one.
+        """
+        if status > FMI_WARNING:
+            if status >= FMI_ERROR:
+                self.failed = True
+            if status >= FMI_FATAL:
+                self.fatal = True
+                self._live = None
+            raise FmuCallError(self.name, call, self.time, self._logged_reason(mark), status)
+        logged = max((s for s, _ in self.messages[mark:]), default=FMI_OK)
+        if logged >= FMI_ERROR:
+            raise FmuCallError(self.name, call, self.time, self._logged_reason(mark), logged)
+
+    def _function(self, name: str):
+        function = self._functions.get(name)
+        if function is None:
+            raise FmuCallError(self.name, name, self.time, f"the FMU's binary does not export {name}")
+        return function
+
+    def _require(self, call: str) -> ctypes.c_void_p:
+        if self._handle is None:
+            raise RuntimeError(f"{self.name}: {call} after fmi3FreeInstance")
+        if self.fatal:
+            raise FmuCallError(self.name, call, self.time, "the FMU returned fmi3Fatal before: no call is allowed",
+                               FMI_FATAL)
+        return self._handle
+
+    def call(self, name: str, *args, label: str | None = None) -> None:
+        """Call FMI function ``name`` on this instance with ``args``; raise on failure."""
+        handle = self._require(name)
+        function = self._function(name)
+        mark = len(self.messages)
+        status = function(handle, *args)
+        self._check(f"{name}({label})" if label else name, status, mark)
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+    def enter_configuration_mode(self) -> None:
+        self.call("fmi3EnterConfigurationMode")
+
+    def exit_configuration_mode(self) -> None:
+        self.call("fmi3ExitConfigurationMode")
+
+    def enter_initialization_mode(self, start_time: float, tolerance: float | None = None,
+                                  stop_time: float | None = None) -> None:
+        self.time = float(start_time)
+        self.call("fmi3EnterInitializationMode", tolerance is not None, tolerance or 0.0, self.time,
+                  stop_time is not None, stop_time if stop_time is not None else 0.0)
+
+    def exit_initialization_mode(self) -> None:
+        self.call("fmi3ExitInitializationMode")
+
+    def terminate(self) -> None:
+        self.call("fmi3Terminate")
+
+    def reset(self) -> None:
+        self.call("fmi3Reset")
+        self.failed = False
+
+    def free(self) -> None:
+        """fmi3FreeInstance (idempotent; skipped after fmi3Fatal, when the standard allows no call)."""
+        handle, self._handle, self._live = self._handle, None, None
+        self.unbind()
+        if handle is not None and not self.fatal:
+            self._function("fmi3FreeInstance")(handle)
+
+    @property
+    def freed(self) -> bool:
+        return self._handle is None
+
+    # -- typed get/set (not the hot path) ----------------------------------------------------------
+    def get(self, fmi_type: str, vrs: Sequence[int], n_values: int | None = None, label: str | None = None):
+        """Values of ``vrs`` (``n_values`` in all, default one each): a numpy array of the native dtype,
+        a list of str (String) or a list of bytes (Binary)."""
+        handle = self._require("get")
+        n_values = len(vrs) if n_values is None else int(n_values)
+        refs = _value_references(vrs)
+        suffix = function_suffix(fmi_type)
+        name = f"fmi3Get{suffix}"
+        function = self._function(name)
+        call = f"{name}({label})" if label else name
+        mark = len(self.messages)
+        if fmi_type == "String":
+            values = (ctypes.c_char_p * n_values)()
+            status = function(handle, refs, len(vrs), values, n_values)
+            self._check(call, status, mark)
+            return [(v or b"").decode("utf-8") for v in values]
+        if fmi_type == "Binary":
+            sizes = (ctypes.c_size_t * n_values)()
+            values = (c_binary * n_values)()
+            status = function(handle, refs, len(vrs), sizes, values, n_values)
+            self._check(call, status, mark)
+            return [ctypes.string_at(v, s) if s else b"" for v, s in zip(values, sizes)]
+        out = np.zeros(n_values, dtype=NATIVE_DTYPES[fmi_type])
+        status = function(handle, refs, len(vrs), _pointer(out, fmi_type), n_values)
+        self._check(call, status, mark)
+        return out
+
+    def set(self, fmi_type: str, vrs: Sequence[int], values, label: str | None = None) -> None:
+        """Set ``vrs`` to ``values`` (numbers, str or bytes as the type needs; arrays flat)."""
+        handle = self._require("set")
+        refs = _value_references(vrs)
+        suffix = function_suffix(fmi_type)
+        name = f"fmi3Set{suffix}"
+        function = self._function(name)
+        call = f"{name}({label})" if label else name
+        mark = len(self.messages)
+        if fmi_type == "String":
+            items = [values] if isinstance(values, str) else list(values)
+            array = (ctypes.c_char_p * len(items))(*[v.encode("utf-8") for v in items])
+            status = function(handle, refs, len(vrs), array, len(items))
+        elif fmi_type == "Binary":
+            items = [values] if isinstance(values, (bytes, bytearray)) else list(values)
+            buffers = [(ctypes.c_uint8 * len(b)).from_buffer_copy(b) if len(b) else None for b in items]
+            sizes = (ctypes.c_size_t * len(items))(*[len(b) for b in items])
+            pointers = (c_binary * len(items))(*[ctypes.cast(b, c_binary) if b is not None else None
+                                                 for b in buffers])
+            status = function(handle, refs, len(vrs), sizes, pointers, len(items))
+        else:
+            array = np.ascontiguousarray(np.asarray(values).reshape(-1), dtype=NATIVE_DTYPES[fmi_type])
+            status = function(handle, refs, len(vrs), _pointer(array, fmi_type), array.size)
+        self._check(call, status, mark)
+
+    # -- the hot path ------------------------------------------------------------------------------
+    def bind(self, ports: Mapping[str, PortLike], inputs: Sequence[str], observed: Sequence[str],
+             in_buffer: np.ndarray | None = None, out_buffer: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Lay out ``inputs`` and ``observed`` ports in float64 buffers (new ones unless given, e.g.
+        shared memory of the :func:`slot_layout` sizes) and prepare every call of the hot path.
+
+        Returns the two buffers; ``input_slots`` and ``output_views`` name the ports' views.
+        """
+        self._require("bind")
+        inputs, observed = list(inputs), list(observed)
+        for name in inputs + observed:
+            if ports[name].type not in NATIVE_DTYPES:
+                raise ValueError(f"{self.name}.{name} is a {ports[name].type} variable: it cannot be moved as numbers")
+        in_layout, in_size = slot_layout(ports, inputs)
+        out_layout, out_size = slot_layout(ports, observed)
+        in_buffer = np.zeros(in_size) if in_buffer is None else in_buffer
+        out_buffer = np.zeros(out_size) if out_buffer is None else out_buffer
+        if in_buffer.shape != (in_size,) or out_buffer.shape != (out_size,) \
+                or in_buffer.dtype != np.float64 or out_buffer.dtype != np.float64:
+            raise ValueError(f"{self.name}: bind() needs float64 buffers of {in_size} and {out_size} values")
+        self._inputs = []
+        for name in inputs:
+            port = ports[name]
+            start, stop = in_layout[name]
+            slot = in_buffer[start:stop]
+            cast = port.type != "Float64"
+            native = np.zeros(port.size, dtype=NATIVE_DTYPES[port.type]) if cast else slot
+            self._inputs.append(_InputPort(
+                name=name, call=f"fmi3Set{function_suffix(port.type)}({name})", size=port.size,
+                vr=_value_references([port.value_reference]), slot=slot, native=native,
+                pointer=_pointer(native, port.type), setter=self._function(f"fmi3Set{function_suffix(port.type)}"),
+                exact=port.type not in ("Float64", "Float32"), cast=cast))
+        self._input_index = {name: i for i, name in enumerate(inputs)}
+        self._input_ports = {port.name: port for port in self._inputs}
+        self._groups = []
+        by_type: dict[str, list[str]] = {}
+        for name in sorted(observed, key=lambda n: out_layout[n][0]):
+            by_type.setdefault(ports[name].type, []).append(name)
+        for fmi_type, names in by_type.items():
+            start, stop = out_layout[names[0]][0], out_layout[names[-1]][1]
+            slot = out_buffer[start:stop]
+            cast = fmi_type != "Float64"
+            native = np.zeros(stop - start, dtype=NATIVE_DTYPES[fmi_type]) if cast else slot
+            suffix = function_suffix(fmi_type)
+            self._groups.append(_OutputGroup(
+                call=f"fmi3Get{suffix}({', '.join(names)})", count=len(names), size=stop - start,
+                vrs=_value_references([ports[n].value_reference for n in names]), slot=slot,
+                native=native, pointer=_pointer(native, fmi_type), getter=self._function(f"fmi3Get{suffix}"),
+                cast=cast, wide=fmi_type in _WIDE_TYPES,
+                names=tuple((n, out_layout[n][0] - start, out_layout[n][1] - start) for n in names)))
+        self.input_slots = {name: in_buffer[a:b] for name, (a, b) in in_layout.items()}
+        self.output_views = {name: out_buffer[a:b] for name, (a, b) in out_layout.items()}
+        return in_buffer, out_buffer
+
+    def unbind(self) -> None:
+        """Drop every view of the bound buffers (so shared memory can be closed)."""
+        self._inputs, self._input_index, self._input_ports, self._groups = [], {}, {}, []
+        self.input_slots, self.output_views = {}, {}
+
+    @property
+    def input_names(self) -> list[str]:
+        return [p.name for p in self._inputs]
+
+    def input_index(self, name: str) -> int | None:
+        return self._input_index.get(name)
+
+    @property
+    def input_ports(self) -> dict[str, _InputPort]:
+        """The bound inputs by name: records with ``slot`` (the float64 view) and ``size``, for :meth:`push_port`."""
+        return self._input_ports
+
+    def push_port(self, port: _InputPort) -> None:
+        """Write one bound input's slot to the FMU (``port`` from :attr:`input_ports`)."""
+        self._push(port)
+
+    def write_inputs(self, values: Mapping[str, np.ndarray]) -> None:
+        """Copy ``values`` (float64-convertible arrays of the ports' sizes) into their input slots and
+        push each to the FMU. KeyError for a name that is not a bound input, ValueError for a wrong size."""
+        ports = self._input_ports
+        for name, value in values.items():
+            port = ports[name]
+            value = np.asarray(value, dtype=np.float64)
+            if value.size != port.size:
+                raise ValueError(f"{self.name}.{name} expects {port.size} value(s), got {value.size}")
+            np.copyto(port.slot, value.reshape(port.size))
+            self._push(port)
+
+    def push(self, indices: Sequence[int] | None = None) -> None:
+        """Write the input slots at ``indices`` of the bound input list (all when None) to the FMU."""
+        if indices is None:
+            for port in self._inputs:
+                self._push(port)
+        else:
+            inputs = self._inputs
+            for i in indices:
+                self._push(inputs[i])
+
+    def _push(self, port: _InputPort) -> None:
+        if port.cast:
+            np.copyto(port.native, port.slot, casting="unsafe")
+            if port.exact and not np.array_equal(port.native, port.slot):
+                raise ValueError(f"{self.name}.{port.name} takes whole numbers"
+                                 f"{' (0 or 1)' if port.native.dtype == np.bool_ else ''}; got {port.slot.tolist()}")
+        handle = self._live
+        if handle is None:
+            self._require("push")
+        messages = self.messages
+        mark = len(messages)
+        status = port.setter(handle, port.vr, 1, port.pointer, port.size)
+        if status or len(messages) != mark:
+            self._check(port.call, status, mark)
+
+    def pull(self) -> None:
+        """Read every observed port into the output buffer."""
+        handle = self._live
+        if handle is None:
+            self._require("pull")
+        messages = self.messages
+        for group in self._groups:
+            mark = len(messages)
+            status = group.getter(handle, group.vrs, group.count, group.pointer, group.size)
+            if status or len(messages) != mark:
+                self._check(group.call, status, mark)
+            if group.cast:
+                if group.wide and not _exact_in_float64(group.native):
+                    self._refuse_wide(group)
+                np.copyto(group.slot, group.native, casting="unsafe")
+
+    def _refuse_wide(self, group: _OutputGroup) -> None:
+        for name, a, b in group.names:
+            values = group.native[a:b]
+            if not _exact_in_float64(values):
+                bad = next(v for v in values.tolist() if abs(v) > _EXACT_INTEGER)
+                raise FmuCallError(self.name, group.call, self.time,
+                                   f"{name} = {int(bad)} is beyond 2**53 and would not survive the master's float64 "
+                                   "values exactly")
+
+    def do_step(self, t: float, h: float, no_set_fmu_state_prior: bool = True) -> tuple[bool, bool, bool, float]:
+        """fmi3DoStep from ``t`` over ``h``; returns its out-flags ``(event_handling_needed,
+        terminate_requested, early_return, last_successful_time)`` (see :class:`StepResult` and the
+        module's notes on fmi3Discard). ``last_successful_time`` is the FMU's when it returned early
+        or asked to terminate, else ``t + h``."""
+        handle = self._live
+        if handle is None:
+            self._require("fmi3DoStep")
+        messages = self.messages
+        mark = len(messages)
+        status = self._do_step_raw(handle, t, h, no_set_fmu_state_prior, *self._step_refs)
+        if status or len(messages) != mark:
+            self._step_problem(t, status, mark)
+        if self._stop_word.value:
+            terminate, early = self._stop_flags
+            last = self.time = self._last_time.value
+            return self._event.value, terminate, early, last
+        end = self.time = t + h
+        return self._event.value, False, False, end
+
+    def _no_do_step(self, *args) -> None:
+        self._function("fmi3DoStep")  # raises: the binary does not export it
+
+    def _step_problem(self, t: float, status: int, mark: int) -> None:
+        """Raise for a failed fmi3DoStep, unless it is fmi3Discard with terminateSimulation."""
+        self.time = t
+        if status == FMI_DISCARD:
+            if self._stop_flags[0]:
+                return
+            messages = self.messages
+            reason = self._logged_reason(mark) if len(messages) > mark else "the FMU logged no reason"
+            raise FmuCallError(self.name, "fmi3DoStep", t,
+                               f"{reason} (fmi3Discard without terminateSimulation: the FMU could not complete the "
+                               "step, and the master does not retry with a smaller one)", status)
+        self._check("fmi3DoStep", status, mark)
+
+
+def resource_path(unzip_dir: Path | str) -> str:
+    """FMI 3.0's resourcePath argument: the extracted ``resources`` folder with a trailing separator."""
+    return os.path.join(str(unzip_dir), "resources") + os.sep
