@@ -290,6 +290,7 @@ class ContactModel:
         self._contact_s = np.zeros(n_prim)
         self._contact_point = np.zeros((n_prim, 3))
         self._near_dist = np.zeros(self.n_tool)
+        self._blend_work = np.zeros((1, 8))
         self._fmag = np.zeros(n_prim)
         # output buffers
         self._node_force = np.zeros((self.n_tool, 3))
@@ -420,6 +421,9 @@ class ContactModel:
         self._pos0 = np.zeros_like(self.local.positions)
         cap = self.local.node_faces.size
         self._ccd_buffers = (np.zeros((cap, 8, 3)), np.zeros(cap, np.int64), np.zeros(cap, np.int64))
+        most = max(int(np.diff(self.local.node_ptr).max(initial=0)), int(np.diff(self.local.seg_ptr).max(initial=0)))
+        if most > self._blend_work.shape[0]:
+            self._blend_work = np.zeros((most, 8))       # the narrow phase's contact-normal scratch
         self.local_refreshes += 1
 
     def _mark_entries(self, hit, toi, q_node, q_face, normals) -> None:
@@ -551,7 +555,7 @@ class ContactModel:
                                local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius, band,
                                self._inside, self._entry_normal, self._contact_face, self._contact_w,
                                self._contact_n, self._contact_depth, self._contact_rate, self._contact_s,
-                               self._contact_point, self._near_dist)
+                               self._contact_point, self._near_dist, self._blend_work)
 
     def _response(self, dt):
         """Penalty forces: against the rigid local model, or solved against the yielding wall
