@@ -44,7 +44,8 @@ def probe_force(local, t, point, velocity=(0.0, 0.0, 0.0), *, stiffness=500.0, d
     depth, rate, s, q, near = np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((1, 3)), np.zeros(1)
     narrow_phase.proximity(pos, local.velocities, local.triangles, local.node_ptr[:2], local.node_faces,
                            np.zeros(1, np.int64), local.seg_faces, p, v, float(radius), 0.0, np.zeros(1, np.int8),
-                           np.zeros((1, 3)), face, w, n, depth, rate, s, q, near)
+                           np.zeros((1, 3)), face, w, n, depth, rate, s, q, near,
+                           np.zeros((max(local.node_faces.size, 1), 8)))
     fmag = np.zeros(1)
     code = law_code(law)
     penalty_kernels.penalty_forces(face, depth, rate, code, float(stiffness), float(damping),

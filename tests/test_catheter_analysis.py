@@ -85,6 +85,44 @@ def test_contact_loop_gain_predicts_cosimulation_stability(tau, stable):
         assert tail.max() - tail.min() > 0.5 * tail.mean()
 
 
+@pytest.mark.parametrize("stiffness", [3000.0, 5000.0])
+def test_implicit_passive_bend_is_stable_against_a_stiff_contact(stiffness):
+    """Issue 12: the tip force reaches the catheter one step late (jacobi). The explicit passive
+    bend multiplies the error by 1 - alpha (1 + G) per step (alpha = 1 - exp(-dt / tau) = 0.095,
+    G = k L^3 / (4 EI) = 20 / 33 at 3000 / 5000 N/m): -0.998, a period-2 oscillation that barely
+    decays, and -2.27, one that grows until the tip leaves the wall and bounces. With the
+    contact's stiffness (the Contact FMU's tip_stiffness) the bend is solved against the force
+    linearised at its new value and the error shrinks by (1 - alpha) / (1 + alpha G) = 0.31 / 0.22,
+    monotonically, to the equilibrium. Both factors are measured on the model, after the wall
+    moves 1 um toward the tip from a settled contact."""
+    params = CatheterParameters(controller_mode="off")
+    G, explicit_stable = contact_loop_gain(params, stiffness, DT)
+    assert contact_loop_gain(params, stiffness, DT, implicit=True) == (G, True)
+    alpha = 1.0 - math.exp(-DT / params.passive_time_constant)
+    model = CatheterModel(params, DT)
+    model.reset(0.05)
+    wall = PlaneWall(point=(-0.0005, 0.0, 0.0), normal=(-1.0, 0.0, 0.0), stiffness=stiffness)
+    simulate(model, wall, 0.3, 0.05, tip_stiffness=True)
+    settled = model.get_state()
+    moved = PlaneWall(point=(-0.000501, 0.0, 0.0), normal=(-1.0, 0.0, 0.0), stiffness=stiffness)
+    equilibrium = linearise(params, moved, 0.05).force
+    for implicit, factor in ((True, (1.0 - alpha) / (1.0 + alpha * G)), (False, 1.0 - alpha * (1.0 + G))):
+        model.set_state(settled)
+        traj = simulate(model, moved, 0.3, 0.05, t_start=0.3, tip_stiffness=implicit)
+        error = traj.force_magnitude - equilibrium
+        assert error[0] != 0.0
+        assert error[1] / error[0] == pytest.approx(factor, rel=1e-2)
+        tail = traj.force_magnitude[-100:]
+        if implicit:
+            ratios = error[1:10] / error[:9]
+            assert np.all((ratios > 0.0) & (ratios < 0.35))           # monotone, fast
+            np.testing.assert_allclose(tail, equilibrium, rtol=1e-9)
+        else:
+            assert not explicit_stable or factor < -0.99                # at or past the bound
+            assert np.all(np.diff(np.sign(error[:4])) != 0)             # period 2 (in contact)
+            assert np.ptp(tail) > 0.5 * abs(error[0])                   # still oscillating after 0.2 s
+
+
 def test_step_metrics_on_known_curves():
     t = DT * np.arange(1, 3001)
     f0, sp, T = 1.0, 0.4, 0.1

@@ -343,6 +343,41 @@ def test_active_chain_matches_reference():
             )
 
 
+def test_tip_jacobian_matches_finite_differences():
+    """d tip / d bend of the implicit passive bend, against central differences of active_chain
+    (straight, small, large and folded bends)."""
+    rng = np.random.default_rng(9)
+    curve = random_centerline(rng)
+    h = 1e-7
+    for n_active in (1, 4, 7):
+        kin = CatheterKinematics(curve, 10, SEG, n_active)
+        for k in range(40):
+            frame = np.array(ref_base_frame(curve, kin.active_length, float(rng.uniform(0.0, curve.length))))
+            bend = ((0.0, 0.0), (1e-7, -3e-8), (0.02, 0.01))[k] if k < 3 else tuple(rng.uniform(-3.0, 3.0, size=2))
+            jac = np.zeros((3, 2))
+            kernels.tip_jacobian(frame, bend[0], bend[1], kin._link_fraction, SEG, jac)
+            out = np.zeros((n_active, 3))
+            numeric = np.zeros((3, 2))
+            for c in range(2):
+                tips = []
+                for sign in (1.0, -1.0):
+                    b = list(bend)
+                    b[c] += sign * h
+                    kernels.active_chain(frame, b[0], b[1], kin._link_fraction, SEG, out)
+                    tips.append(out[-1].copy())
+                numeric[:, c] = (tips[0] - tips[1]) / (2 * h)
+            np.testing.assert_allclose(jac, numeric, rtol=0, atol=1e-7 * SEG * n_active)
+    # straight tip: it moves by L / 2 per radian across its tangent
+    np.testing.assert_allclose(_straight_jacobian(kin, frame), 0.5 * kin.active_length *
+                               frame[2:].T, atol=1e-15)
+
+
+def _straight_jacobian(kin, frame):
+    jac = np.zeros((3, 2))
+    kernels.tip_jacobian(frame, 0.0, 0.0, kin._link_fraction, SEG, jac)
+    return jac
+
+
 def test_kinematics_shape_and_base_frame_match_reference():
     rng = np.random.default_rng(6)
     for _ in range(30):

@@ -8,6 +8,7 @@ enumeration); without W the model renders exactly as hold. Stability: a linear s
 built here (backward Euler, W = h^2 (M + h C + h^2 K)^-1) at 30 Hz against a 1 kHz probe, compared
 with the same wall stepped at 1 kHz single-rate.
 """
+import copy
 import itertools
 import logging
 import warnings
@@ -105,6 +106,64 @@ def test_probe_inside_a_face_weights_and_a_translating_patch():
         np.testing.assert_allclose(out.tool_force, [0.0, 0.0, k * d / (1 + k * c)], rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(model2.wall_displacement, np.tile([0.0, 0.0, -c * k * d / (1 + k * c)], (ring.size, 1)),
                                rtol=1e-12, atol=1e-18)
+
+
+def _finite_difference_stiffness(model, t, tool, h=1e-7):
+    """-d tip_force / d (tip position) by central differences, each from a copy of `model`."""
+    K = np.zeros((3, 3))
+    for c in range(3):
+        forces = []
+        for sign in (1.0, -1.0):
+            moved = np.array(tool, dtype=float)
+            moved[-1, c] += sign * h
+            forces.append(copy.deepcopy(model).step(t, 1e-3, moved).tip_force)
+        K[:, c] = -(forces[0] - forces[1]) / (2 * h)
+    return K
+
+
+@pytest.mark.parametrize("damping", [0.0, 0.5])
+def test_tip_stiffness_is_the_derivative_of_the_tip_force(damping):
+    """The Contact FMU's tip_stiffness, which the catheter integrates its passive tip against:
+    K = -d tip_force / d tip = s n n^T with s = k + b / dt against the rigid local model, and
+    s / (1 + s w), w = sum w_i^2 c, against a wall that yields through W = c I (a probe inside a
+    face); checked against central differences of the model's own force (exactly on the rigid
+    wall; along the normal on the yielding one)."""
+    k, c, d, dt = 2000.0, 1e-3, 0.0008, 1e-3
+    s = k + damping / dt
+    zz = np.diag([0.0, 0.0, 1.0])
+    # a catheter centerline whose tip sphere (1 mm) presses 0.4 mm into the flat wall (hold)
+    pos, tri, _ = grid_wall()
+    model = ContactModel(tri, pos.shape[0], 3, ContactParameters(
+        tool="centerline", stiffness=k, damping=damping, local_model="hold"))
+    model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
+    tool = np.array([[0.0031, 0.0017, 0.0046], [0.0031, 0.0017, 0.0026], [0.0031, 0.0017, 0.0006]])
+    model.step(0.0, dt, tool)
+    out = copy.deepcopy(model).step(dt, dt, tool)
+    np.testing.assert_allclose(out.tip_stiffness, s * zz, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(_finite_difference_stiffness(model, dt, tool), s * zz, rtol=1e-6, atol=1e-3)
+    # a probe inside a face of a yielding wall
+    point = np.array([[0.0031, 0.0017, -d]])
+    model = ContactModel(tri, pos.shape[0], 1, ContactParameters(
+        tool="probe", stiffness=k, damping=damping, local_model="compliance"))
+    face, w = face_vertices_under(pos, tri, point[0])
+    model.set_tissue_frame(0.0, pos, compliance=c * np.eye(9), compliance_nodes=np.sort(face),
+                           applied_force=np.zeros(9))
+    model.step(0.0, dt, point)
+    out = copy.deepcopy(model).step(dt, dt, point)
+    K = out.tip_stiffness
+    # along the contact normal (the face tilts by the yielding of its vertices, c w_i f: 0.5 degree)
+    normal = out.tip_force / np.linalg.norm(out.tip_force)
+    assert normal[2] > 0.999
+    np.testing.assert_allclose(K, np.trace(K) * np.outer(normal, normal), rtol=1e-9, atol=1e-9)
+    assert np.trace(K) == pytest.approx(s / (1.0 + s * c * np.sum(w ** 2)), rel=5e-3)   # weights on the moved face
+    assert np.trace(K) < 0.5 * s                                   # the wall's yielding halves it (or more)
+    # along the normal as the model's own force changes; the tangential terms of K leave out how
+    # the compliance under the contact point (sum w_i^2 c) varies as the point slides over the face
+    fd = _finite_difference_stiffness(model, dt, point)
+    assert normal @ fd @ normal == pytest.approx(np.trace(K), rel=1e-2)
+    # no contact: zeros
+    out = model.step(2 * dt, dt, [[0.0031, 0.0017, 0.002]])
+    assert out.contact_count == 0 and not out.tip_stiffness.any()
 
 
 def test_vertices_without_compliance_are_rigid_and_no_W_renders_as_hold():

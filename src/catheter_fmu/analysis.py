@@ -19,7 +19,9 @@ the tip, ``g = L^2 / (2 EI)`` the passive bend per newton, ``k`` the wall stiffn
 
 ``P(0) = -k h / (1 + G)``: the catheter tip and the wall act as springs in series. The explicit
 co-simulation exchange is stable while ``(1 - exp(-dt / tau)) (1 + G) < 2``
-(``contact_loop_gain``).
+(``contact_loop_gain``); with the wall's stiffness passed along (``simulate(...,
+tip_stiffness=True)``, the scenes' ``tip_stiffness`` connection) the passive bend is implicit and
+stable at every G.
 
 How to tune the regulator (``kp`` rad/N, ``ki`` rad/(N s)):
 
@@ -120,6 +122,13 @@ class PlaneWall:
         pen = self.penetration(p)
         return self.stiffness * pen * self._n if pen > 0.0 else np.zeros(3)
 
+    def stiffness_matrix(self, p) -> np.ndarray:
+        """(3, 3) ``-d force / d p`` at tip position p (N/m): ``k n n^T`` in contact, else zeros
+        (what the Contact FMU outputs as ``tip_stiffness``)."""
+        if self.penetration(p) > 0.0:
+            return self.stiffness * np.outer(self._n, self._n)
+        return np.zeros((3, 3))
+
 
 # --------------------------------------------------------------------------------------
 # Closed-loop simulation
@@ -158,11 +167,14 @@ def simulate(
     rotation=0.0,
     external_command=0.0,
     t_start: float = 0.0,
+    tip_stiffness: bool = False,
 ) -> Trajectory:
     """Run ``model`` (its current state, its dt) against ``wall`` for ``duration`` seconds.
 
     ``insertion``, ``rotation`` and ``external_command`` are constants or functions of time
-    (evaluated at the start of each step, held over it).
+    (evaluated at the start of each step, held over it). ``tip_stiffness``: pass the wall's
+    stiffness at the last tip position with its force, as the scenes connect the Contact FMU's
+    ``tip_stiffness`` (the implicit passive bend); False: the force only (explicit).
     """
     dt = model.dt
     n = int(round(duration / dt))
@@ -173,11 +185,14 @@ def simulate(
     force_hist = np.empty((n, 3))
     tip_hist = np.empty((n, 3))
     force = wall.force(model.outputs.tip_position)
+    stiffness = wall.stiffness_matrix(model.outputs.tip_position) if tip_stiffness else None
     for k in range(n):
         t = t_start + k * dt
         s = ins(t)
-        o = model.step(t, dt, s, rot(t), force, ext(t))
+        o = model.step(t, dt, s, rot(t), force, ext(t), stiffness)
         force = wall.force(o.tip_position)
+        if tip_stiffness:
+            stiffness = wall.stiffness_matrix(o.tip_position)
         out["insertion"][k] = s
         force_hist[k] = force
         tip_hist[k] = o.tip_position
@@ -478,11 +493,19 @@ def simulated_frequency_response(
     return complex(a, b) / amplitude
 
 
-def contact_loop_gain(params: CatheterParameters, wall_stiffness: float, dt: float = 1e-3) -> tuple[float, bool]:
-    """(G, stable) for a straight tip on a wall normal to it: ``G = k L^3 / (4 EI)``; the explicit
-    exchange with the contact is stable iff ``(1 - exp(-dt / tau)) (1 + G) < 2``."""
+def contact_loop_gain(
+    params: CatheterParameters, wall_stiffness: float, dt: float = 1e-3, implicit: bool = False
+) -> tuple[float, bool]:
+    """(G, stable) for a straight tip on a wall normal to it: ``G = k L^3 / (4 EI)``.
+
+    Explicit exchange (the tip gets the force only): the error of the passive bend is multiplied
+    by ``1 - alpha (1 + G)`` per step, ``alpha = 1 - exp(-dt / tau)``: stable iff
+    ``alpha (1 + G) < 2``. Implicit (the tip also gets the contact's stiffness, ``implicit=True``):
+    by ``(1 - alpha) / (1 + alpha G)``, in [0, 1) for every G >= 0: always stable."""
     L = params.active_length
     G = wall_stiffness * L**3 / (4.0 * params.bending_stiffness)
+    if implicit:
+        return G, True
     tau = params.passive_time_constant
     alpha = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
     return G, alpha * (1.0 + G) < 2.0

@@ -44,6 +44,8 @@ VARIABLES = (
     input_port("rotation", "catheter rotation from the operator/device", "rad"),
     input_port("external_command", "actuator command in mode external", "rad"),
     input_port("tip_force", "contact force on the tip (from Contact)", "N", shape=(3,)),
+    input_port("tip_stiffness", "stiffness of tip_force against the tip's motion, -d tip_force / d tip (from "
+               "Contact; zeros: the passive bend is integrated explicitly)", "N/m", shape=(3, 3)),
     output("centerline_positions", "catheter centerline points, proximal first, tip last", "m",
            shape=("n_tool_points", 3)),
     output("tip_position", "tip position", "m", shape=(3,)),
@@ -75,7 +77,7 @@ class CatheterFmu:
 
     def step(self, t: float, dt: float) -> None:
         v = self.values
-        self.model.step(t, dt, v.insertion, v.rotation, v.tip_force, v.external_command)
+        self.model.step(t, dt, v.insertion, v.rotation, v.tip_force, v.external_command, v.tip_stiffness)
         self._publish()
 
     def _publish(self) -> None:

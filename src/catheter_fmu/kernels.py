@@ -231,3 +231,95 @@ def catheter_shape(
     for c in range(3):
         positions[n_prox, c] = frame4[0, c]
     active_chain(frame4, b1, b2, link_fraction, segment_length, positions[n_prox + 1 :])
+
+
+@njit(cache=True)
+def tip_jacobian(frame4, b1, b2, link_fraction, segment_length, out):
+    """out (3, 2): d tip / d (b1, b2) of ``active_chain`` (m/rad), the tip's motion per unit bend.
+
+    tip = base + l sum_j [cos(f_j beta) t + sin(f_j beta) / beta u], u = b1 e1 + b2 e2, so with
+    A = sum_j sin(f_j beta) / beta, B = -sum_j f_j sin(f_j beta), C = dA/dbeta:
+    d tip / d b_k = l [(B t + C u) b_k / beta + A e_k] (A = sum_j f_j = n / 2, B = C = 0 at beta = 0:
+    the straight tip moves by L/2 per radian across its tangent).
+    """
+    beta = math.hypot(b1, b2)
+    a_sum = 0.0
+    b_sum = 0.0
+    c_sum = 0.0
+    for j in range(link_fraction.shape[0]):
+        f = link_fraction[j]
+        x = f * beta
+        if x < 1e-4:  # series: sin(x)/beta = f (1 - x^2/6), dA/dbeta = -f^3 beta / 3
+            a_sum += f * (1.0 - x * x / 6.0)
+            b_sum -= f * x
+            c_sum -= f * f * f * beta / 3.0
+        else:
+            s = math.sin(x)
+            a_sum += s / beta
+            b_sum -= f * s
+            c_sum += (x * math.cos(x) - s) / (beta * beta)
+    for k in range(2):
+        bk = b1 if k == 0 else b2
+        ratio = bk / beta if beta > 0.0 else 0.0
+        for d in range(3):
+            u = b1 * frame4[2, d] + b2 * frame4[3, d]
+            out[d, k] = segment_length * ((b_sum * frame4[1, d] + c_sum * u) * ratio + a_sum * frame4[2 + k, d])
+
+
+@njit(cache=True)
+def implicit_passive_bend(frame4, b1, b2, link_fraction, segment_length, K, jac, p1, p2, target1, target2, alpha,
+                          gain):
+    """One step of the passive bend (p1, p2) against the force linearised at its new value.
+
+    Explicit, the bend relaxes toward gain * F_n across the tangent (target1, target2):
+    pb' = pb + alpha (target - pb). With K = -dF/dx (3, 3) of the contact at the shape the force
+    came from (total bend (b1, b2)) and J = d tip / d bend there (``tip_jacobian``, into jac),
+    the force at the new bend is F_n - K J (pb' - pb), so
+    (I + alpha gain P K J) (pb' - pb) = alpha (target - pb), P the rows e1, e2 of frame4.
+    Returns (pb1', pb2', status): status 1 solved; 0 K is zero (nothing to linearise: the caller
+    takes the explicit step); 2 the 2x2 system is not positive (K J not restoring there: explicit);
+    -1 K is not finite.
+    """
+    zero = True
+    for r in range(3):
+        for c in range(3):
+            x = K[r, c]
+            if not math.isfinite(x):
+                return p1, p2, -1
+            if x != 0.0:
+                zero = False
+    if zero:
+        return p1, p2, 0
+    tip_jacobian(frame4, b1, b2, link_fraction, segment_length, jac)
+    m00 = 0.0
+    m01 = 0.0
+    m10 = 0.0
+    m11 = 0.0
+    # P K J: m_ab = e_a . K . J[:, b]
+    for a in range(2):
+        for b in range(2):
+            acc = 0.0
+            for r in range(3):
+                kj = 0.0
+                for c in range(3):
+                    kj += K[r, c] * jac[c, b]
+                acc += frame4[2 + a, r] * kj
+            if a == 0 and b == 0:
+                m00 = acc
+            elif a == 0:
+                m01 = acc
+            elif b == 0:
+                m10 = acc
+            else:
+                m11 = acc
+    ag = alpha * gain
+    a00 = 1.0 + ag * m00
+    a01 = ag * m01
+    a10 = ag * m10
+    a11 = 1.0 + ag * m11
+    r1 = alpha * (target1 - p1)
+    r2 = alpha * (target2 - p2)
+    det = a00 * a11 - a01 * a10
+    if not (det > 0.0 and math.isfinite(det)):
+        return p1, p2, 2
+    return p1 + (a11 * r1 - a01 * r2) / det, p2 + (a00 * r2 - a10 * r1) / det, 1

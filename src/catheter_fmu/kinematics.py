@@ -80,6 +80,17 @@ class CatheterKinematics:
         )
         return self.positions
 
+    @property
+    def link_fraction(self) -> np.ndarray:
+        """(n_active,) link angles (j - 1/2) / n_active in units of the total bend angle."""
+        return self._link_fraction
+
+    def fill_tip_jacobian(self, frame: np.ndarray, b1: float, b2: float, out: np.ndarray) -> np.ndarray:
+        """Fill and return ``out`` (3, 2): d tip / d (b1, b2) (m/rad) of the active section bent by
+        (b1, b2) on a (4, 3) frame array (``fill_base_frame``)."""
+        kernels.tip_jacobian(frame, b1, b2, self._link_fraction, self.segment_length, out)
+        return out
+
     def base_frame(self, insertion: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(base point, tangent t, e1, e2) of the active section for this insertion."""
         out = np.empty((4, 3))

@@ -8,7 +8,8 @@ One step (inputs held over ``[t, t + dt]``, outputs at ``t + dt``):
 3. actuator: exact first-order lag with rate and angle saturation;
 4. passive deflection: the bend vector relaxes toward ``g F_perp`` with ``g = L^2 / (2 EI)``
    (``L`` active length, ``F_perp`` the tip force across the base tangent) and time constant
-   ``passive_time_constant`` (exact exponential; 0 = quasi-static);
+   ``passive_time_constant`` (exact exponential; 0 = quasi-static), against the force
+   linearised at the new bend when the contact gives its tip stiffness (see below);
 5. shape: proximal chain on the centerline, active arc bent by
    ``beta = active_angle * (cos rotation, sin rotation) + passive_bend`` (see kinematics);
 6. effort warning (hysteresis) and advised insertion scale.
@@ -20,13 +21,18 @@ the cantilever's. The tip deflection is then ``F L^3 / (4 EI)``, 3/4 of the cant
 ``F L^3 / (3 EI)`` (a 4/3 stiffer tip). Small-deflection mechanics: the moment arm is taken
 across the base tangent, not the bent shape.
 
-Why a passive time constant. The tip force is an input computed by another FMU from the tip
-position of the previous step, so a quasi-static tip closes an explicit loop with gain
-``G = k_contact L^3 / (4 EI)`` that diverges for ``G > 1`` (a 500 N/m wall gives G = 3.3 with the
-defaults). Relaxing with ``alpha = 1 - exp(-dt / tau)`` is stable while ``alpha (1 + G) < 2``
-(the default 10 ms at dt = 1 ms allows G < 20, i.e. contact stiffness up to ~3000 N/m
-with the default tip; quasi-static, tau = 0, needs G < 1, i.e. below ~150 N/m); it also
-stands for the tip's structural and blood damping. See ``analysis.contact_loop_gain``.
+The tip force is an input computed by another FMU from the tip position of the previous step,
+so the passive bend closes a loop through the contact with gain ``G = k_contact L^3 / (4 EI)``
+(a 500 N/m wall gives G = 3.3 with the defaults). Integrated explicitly (the bend relaxes toward
+``g F`` of the last step, ``alpha = 1 - exp(-dt / tau)``) the loop is stable only while
+``alpha (1 + G) < 2`` (the default 10 ms at dt = 1 ms: G < 20, a rigid contact up to ~3000 N/m;
+quasi-static, tau = 0, needs G < 1, below ~150 N/m). With the input ``tip_stiffness``
+``K = -dF/dx`` of the contact (the Contact FMU's output of the same name: the penalty slope, with
+the wall's compliance ``k / (1 + k w)``), the bend is solved against the force linearised at its
+new value, ``F_n - K J (pb' - pb)`` (``J`` = d tip / d bend): the error then shrinks by
+``(1 - alpha) / (1 + alpha G)`` per step, stable and monotone at every stiffness and for tau = 0
+too. Without it (zeros) the step is the explicit one. The time constant stands for the tip's
+structural and blood damping. See ``analysis.contact_loop_gain``.
 
 Default bending stiffness: a 6 Fr (2.0 mm OD, 1.4 mm ID) Pebax 72D tube, E ~ 0.5 GPa,
 ``I = pi (D^4 - d^4) / 64 = 5.97e-13 m^4``, gives ``EI ~ 3.0e-4 N m^2``, inside the 1e-4..1e-3
@@ -41,6 +47,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from . import kernels
 from .actuator import Actuator
 from .controller import EffortMonitor, ForceRegulator
 from .geometry import CenterlineCurve
@@ -244,6 +251,8 @@ class CatheterModel:
         self.active_length = self.kinematics.active_length
         # Passive bend per unit force across the tangent: L^2 / (2 EI) (rad/N).
         self.passive_gain = self.active_length**2 / (2.0 * params.bending_stiffness)
+        self._jacobian = np.zeros((3, 2))  # d tip / d bend (work array of the implicit passive bend)
+        self._link_fraction = self.kinematics.link_fraction
         self.actuator = Actuator(params.actuator_bandwidth, params.max_bend_angle, params.max_bend_rate)
         self.regulator = ForceRegulator(
             params.kp,
@@ -260,6 +269,9 @@ class CatheterModel:
         )
         self.mode = params.controller_mode
         self.reset()
+        # load (or compile) the implicit passive bend's kernel now, not at the first 1 kHz step
+        kernels.implicit_passive_bend(self.kinematics.frame, 0.0, 0.0, self._link_fraction, params.segment_length,
+                                      np.eye(3), self._jacobian, 0.0, 0.0, 0.0, 0.0, 0.5, self.passive_gain)
 
     # ----------------------------------------------------------------------------------
 
@@ -322,11 +334,15 @@ class CatheterModel:
             )
         return dt
 
-    def step(self, t: float, dt: float, insertion: float, rotation: float, tip_force, external_command: float = 0.0):
+    def step(self, t: float, dt: float, insertion: float, rotation: float, tip_force, external_command: float = 0.0,
+             tip_stiffness=None):
         """Advance from t to t + dt with the inputs held; return (and store) the outputs.
 
         insertion (m), rotation (rad), tip_force (3,) force ON the tip from the wall (N),
-        external_command (rad, used in mode "external").
+        external_command (rad, used in mode "external"), tip_stiffness (3, 3) or 9 values,
+        ``K = -d tip_force / d tip_position`` (N/m) where tip_force was computed, or None (zeros):
+        the passive bend is integrated against the force linearised at its new value (see the
+        module docstring).
         """
         dt = self._check_step(dt)
         insertion = _number("insertion", insertion, "0.05 (m)")
@@ -358,20 +374,48 @@ class CatheterModel:
         else:
             command = 0.0
         command = self.actuator.clip_command(command)
+        # the bend the contact saw (before this step's actuator motion): where K linearises the force
+        p1, p2 = self.passive_bend.tolist()
+        bend1 = self.actuator.angle * cos_r + p1
+        bend2 = self.actuator.angle * sin_r + p2
         self.actuator.step(command, dt)
 
-        target1 = self.passive_gain * f1
-        target2 = self.passive_gain * f2
+        g = self.passive_gain
+        target1 = g * f1
+        target2 = g * f2
         tau = self.params.passive_time_constant
         keep = math.exp(-dt / tau) if tau > 0.0 else 0.0
         pb = self.passive_bend
-        p1, p2 = pb.tolist()
-        pb[0] = target1 + (p1 - target1) * keep
-        pb[1] = target2 + (p2 - target2) * keep
+        status = 0
+        if tip_stiffness is not None:
+            new1, new2, status = kernels.implicit_passive_bend(
+                frame, bend1, bend2, self._link_fraction, self.params.segment_length, self._stiffness(tip_stiffness),
+                self._jacobian, p1, p2, target1, target2, 1.0 - keep, g)
+            if status < 0:
+                raise CatheterParameterError(
+                    f"tip_stiffness must be finite (got {np.asarray(tip_stiffness).tolist()}): check the contact"
+                    " component's output")
+        if status == 1:
+            pb[0] = new1
+            pb[1] = new2
+        else:  # explicit: no stiffness given, zeros (no contact), or not restoring where linearised
+            pb[0] = target1 + (p1 - target1) * keep
+            pb[1] = target2 + (p2 - target2) * keep
 
         self.time = float(t) + dt
         self._outputs_from(insertion, rotation, command, force_magnitude, frame, cos_r, sin_r)
         return self.outputs
+
+    @staticmethod
+    def _stiffness(tip_stiffness) -> np.ndarray:
+        """The tip stiffness as a (3, 3) float64 array (the FMU's buffer as it is)."""
+        k = tip_stiffness
+        if type(k) is np.ndarray and k.shape == (3, 3) and k.dtype == np.float64:  # the 1 kHz common case
+            return k
+        k = np.asarray(k, dtype=np.float64)
+        if k.size != 9:
+            raise CatheterParameterError(f"tip_stiffness must have 3x3 = 9 values (N/m) (got shape {k.shape})")
+        return np.ascontiguousarray(k.reshape(3, 3))
 
     def _outputs_from(self, insertion, rotation, command, force_magnitude, frame, cos_r=None, sin_r=None) -> None:
         """Shape and outputs; ``frame`` is the (4, 3) base frame array of this insertion."""

@@ -83,6 +83,8 @@ VARIABLES = (
                "m/s", shape=PER_TOOL),
     output("tool_force", "total force on the tool (device)", "N", shape=(3,)),
     output("tip_force", "force on the last tool point (catheter tip)", "N", shape=(3,)),
+    output("tip_stiffness", "stiffness of tip_force against the tip's motion, -d tip_force / d tip (3x3, to "
+           "Catheter: its passive bend is integrated against it)", "N/m", shape=(3, 3)),
     output("tissue_contact_force", "contact forces on the tissue surface nodes (to Tissue)", "N", shape=PER_NODE),
     output("penetration_depth", "largest interpenetration", "m"),
     output("contact_energy", "penalty potential energy", "J"),
@@ -129,6 +131,7 @@ class ContactFmu:
         out = self.model.step(t, dt, v.tool_positions, velocities)
         v.tool_force = out.tool_force
         v.tip_force = out.tip_force
+        v.tip_stiffness = out.tip_stiffness
         v.tissue_contact_force = out.tissue_contact_force
         v.penetration_depth = out.penetration_depth
         v.contact_count = int(out.contact_count)

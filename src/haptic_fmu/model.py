@@ -170,6 +170,7 @@ class ContactOutputs:
 
     tool_force: np.ndarray             # (3,) total force on the tool, N
     tip_force: np.ndarray              # (3,) force on the last tool point, N
+    tip_stiffness: np.ndarray          # (3,3) -d tip_force / d (last tool point), N/m (penalty_kernels.tip_stiffness)
     tissue_contact_force: np.ndarray   # (n_surface,3) nodal forces on the surface, N
     node_forces: np.ndarray            # (n_tool,3) force on each tool point, N
     penetration_depth: float           # max over contacts, m
@@ -290,9 +291,11 @@ class ContactModel:
         self._contact_s = np.zeros(n_prim)
         self._contact_point = np.zeros((n_prim, 3))
         self._near_dist = np.zeros(self.n_tool)
+        self._blend_work = np.zeros((1, 8))
         self._fmag = np.zeros(n_prim)
         # output buffers
         self._node_force = np.zeros((self.n_tool, 3))
+        self._tip_stiffness = np.zeros((3, 3))
         self._tissue_force = np.zeros((self.n_surface, 3))
         self._no_record = np.zeros((0, 3))
         self._pos0 = np.zeros((0, 3))
@@ -420,6 +423,9 @@ class ContactModel:
         self._pos0 = np.zeros_like(self.local.positions)
         cap = self.local.node_faces.size
         self._ccd_buffers = (np.zeros((cap, 8, 3)), np.zeros(cap, np.int64), np.zeros(cap, np.int64))
+        most = max(int(np.diff(self.local.node_ptr).max(initial=0)), int(np.diff(self.local.seg_ptr).max(initial=0)))
+        if most > self._blend_work.shape[0]:
+            self._blend_work = np.zeros((most, 8))       # the narrow phase's contact-normal scratch
         self.local_refreshes += 1
 
     def _mark_entries(self, hit, toi, q_node, q_face, normals) -> None:
@@ -482,7 +488,7 @@ class ContactModel:
         self._warn_if_active(float(energy), t)
         self._tool_prev = tool1.copy()
         return ContactOutputs(
-            tool_force=node_force.sum(axis=0), tip_force=node_force[-1].copy(),
+            tool_force=node_force.sum(axis=0), tip_force=node_force[-1].copy(), tip_stiffness=self._tip_stiffness,
             tissue_contact_force=self._tissue_force, node_forces=self._node_force,
             penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
             passivity_energy=self._renderer.energy)
@@ -551,20 +557,21 @@ class ContactModel:
                                local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius, band,
                                self._inside, self._entry_normal, self._contact_face, self._contact_w,
                                self._contact_n, self._contact_depth, self._contact_rate, self._contact_s,
-                               self._contact_point, self._near_dist)
+                               self._contact_point, self._near_dist, self._blend_work)
 
     def _response(self, dt):
         """Penalty forces: against the rigid local model, or solved against the yielding wall
-        (one kernel: solve, distribution, the patch's new load and displacement)."""
+        (one kernel: solve, distribution, the tip's stiffness, the patch's new load and
+        displacement)."""
         p = self.params
         c = self.compliance
         if c is not None and c.active:
             rendering_kernels.compliance_response(
                 self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
-                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, c.slot, c.W, c.g, c.g_new,
-                c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt,
+                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, self.n_segments, c.slot, c.W,
+                c.g, c.g_new, c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt,
                 COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, c._act, c._Wa, c._D, c._J, c._work,
-                self._node_force, self._tissue_force, c.record[c.current], c.out)
+                self._node_force, self._tissue_force, c.record[c.current], self._tip_stiffness, c.out)
             c.record_steps[c.current] += 1
             max_depth, count, energy, iterations, c.band = c.out.tolist()
             c.iterations = int(iterations)
@@ -575,16 +582,15 @@ class ContactModel:
                                    "sweeps; kept the last iterate); reported once", COMPLIANCE_MAX_ITERATIONS,
                                    rendering_kernels.GAUSS_SEIDEL_SWEEPS)
             return max_depth, count, energy
-        penalty_kernels.penalty_forces(self._contact_face, self._contact_depth, self._contact_rate,
-                                       self._law, p.stiffness, p.damping, p.penalty_length, self._fmag)
         record = self._no_record
         if c is not None:
             record = c.record[c.current]
             c.record_steps[c.current] += 1
-        return penalty_kernels.distribute(
-            self._fmag, self._contact_face, self._contact_w, self._contact_n, self._contact_s, self._contact_depth,
-            self.local.triangles, self.local.vertices, self.n_tool, self._law, p.stiffness, p.penalty_length,
-            self._node_force, self._tissue_force, record)
+        return penalty_kernels.rigid_response(
+            self._contact_face, self._contact_w, self._contact_n, self._contact_s, self._contact_depth,
+            self._contact_rate, self.local.triangles, self.local.vertices, self.n_tool, self.n_segments, self._law,
+            p.stiffness, p.damping, p.penalty_length, dt, self._fmag, self._node_force, self._tissue_force, record,
+            self._tip_stiffness)
 
     def _name_patch(self, tool1) -> None:
         c = self.compliance

@@ -21,6 +21,19 @@ it went through cannot flip the force). Segments (centerline only) add a contact
 interior, in front of the face, comes within radius of it (capsule, depth = radius - distance
 of the axis to the face).
 
+The contact normal (the force's direction) is not the nearest face's alone: it is the sum of
+the normals of every candidate face the sphere (capsule) reaches, within radius + band of it,
+weighted by that reach radius + band - |p - q_f|, coplanar faces (the two triangles of a flat
+quad) once (`_node_normal`, `_segment_normal`); the depth stays the nearest face's. On a flat patch every such face has the same normal, so nothing
+changes; across an edge of the tessellated wall the direction turns continuously instead of
+jumping from one facet's normal to the next's. With the nearest face's normal alone, a sphere
+resting in a concave crease between two facets (the 14 degrees between neighbouring facets of
+the AAA sac) is pushed toward the other facet by each one, which then becomes the nearest: the
+force direction flips every haptic step, a relay that the one-step delays (the catheter's tip,
+the wall's yielding under the last step's force) turn into a 500 Hz period-2 oscillation that
+creates energy at the port (aaa_endovascular: -0.090 J over 60 s at 1000 N/m, now none). A point
+probe (radius 0) reaches no face beyond the band: its normal is the nearest face's, as before.
+
 Numba kernels: arrays in, preallocated arrays out, no validation (the model checks inputs).
 """
 import math
@@ -92,7 +105,7 @@ def ccd_candidates(pos0, pos1, tri, node_ptr, node_faces, tool0, tool1, radius, 
 @njit(cache=True)
 def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, tool_vel, radius, band,
               inside, entry_normal, contact_face, contact_w, contact_n, contact_depth, contact_rate,
-              contact_s, contact_point, near_dist):
+              contact_s, contact_point, near_dist, work):
     """Closest facet and contact data of every tool primitive (nodes then segments).
 
     pos, vel (nv,3): local model vertex positions and velocities at the evaluation time;
@@ -106,6 +119,7 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
     band >= 0: primitives closer than band to their face are reported too, with depth in
     (-band, 0] (the compliance model's wall may come back by up to its current yielding, so its
     solve decides those; 0 for the rigid local models: only penetrations).
+    work (k, 8): scratch of the contact normal's blend, k >= the candidate faces of any primitive.
     Returns the number of primitives reported.
     """
     n_tool = tool.shape[0]
@@ -130,6 +144,7 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
         bnx = 0.0
         bny = 0.0
         bnz = 0.0
+        seen = 0
         for j in range(node_ptr[i], node_ptr[i + 1]):
             f = node_faces[j]
             a = pos[tri[f, 0]]
@@ -141,6 +156,11 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
                 continue  # the far side of the wall: not the side this node came from
             wa, wb, wc = closest_point_triangle(px, py, pz, a, bb, c)
             d2 = dist2_point_bary(px, py, pz, a, bb, c, wa, wb, wc)
+            work[seen, 0] = d2          # kept for the contact normal's blend
+            work[seen, 1] = nx
+            work[seen, 2] = ny
+            work[seen, 3] = nz
+            seen += 1
             if d2 < best:
                 best = d2
                 best_f = f
@@ -161,6 +181,9 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
         if dist >= band or (band == 0.0 and dist >= 0.0):
             inside[i] = 0
             continue
+        # the contact normal: the faces the sphere touches, each weighted by how far it is in
+        # (continuous across the edges of the tessellated wall; see the module docstring)
+        bnx, bny, bnz = _node_normal(work, seen, radius + band, bnx, bny, bnz)
         if dist < 0.0:
             inside[i] = 1
             entry_normal[i, 0] = bnx
@@ -220,6 +243,8 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
         dist = math.sqrt(best) - radius
         if dist >= band or (band == 0.0 and dist >= 0.0):
             continue
+        bnx, bny, bnz = _segment_normal(p0, p1, pos, tri, seg_faces, seg_ptr[sgi], seg_ptr[sgi + 1], radius + band,
+                                        work, bnx, bny, bnz)
         va = vel[tri[best_f, 0]]
         vb = vel[tri[best_f, 1]]
         vc = vel[tri[best_f, 2]]
@@ -233,6 +258,90 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
                contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, contact_point)
         count += 1
     return count
+
+
+#: Faces whose normals agree to this (1 - cos) are one plane in the contact normal's blend.
+COPLANAR = 1e-9
+
+
+@njit(cache=True)
+def _reach(work, count, w, nx, ny, nz):
+    """Add a face within reach (weight w > 0, normal n) to the blend in work[:, 4:8]: a face
+    coplanar with one already there (the two triangles of a flat quad) counts once, with the larger
+    weight. Returns the new count."""
+    for e in range(count):
+        if nx * work[e, 5] + ny * work[e, 6] + nz * work[e, 7] > 1.0 - COPLANAR:
+            if w > work[e, 4]:
+                work[e, 4] = w
+            return count
+    work[count, 4] = w
+    work[count, 5] = nx
+    work[count, 6] = ny
+    work[count, 7] = nz
+    return count + 1
+
+
+@njit(cache=True)
+def _blend(work, count, bnx, bny, bnz):
+    """The unit sum of the weighted normals in work[:count, 4:8]; (bnx, bny, bnz) when empty."""
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    for e in range(count):
+        sx += work[e, 4] * work[e, 5]
+        sy += work[e, 4] * work[e, 6]
+        sz += work[e, 4] * work[e, 7]
+    norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+    if norm <= 0.0:
+        return bnx, bny, bnz
+    return sx / norm, sy / norm, sz / norm
+
+
+@njit(cache=True)
+def _node_normal(work, seen, reach, bnx, bny, bnz):
+    """Contact normal of a node sphere from its `seen` candidate faces (work[:, 0:4]: squared
+    distance to the face, normal; the side filter already applied): the normals of the faces
+    closer than reach = radius + band (the sphere's overlap, plus the band), each weighted by
+    reach - |p - q_f|, coplanar faces once, faces on the nearest face's side only (bnx, bny, bnz:
+    that face's normal, returned unchanged when no face is within reach: a point probe, or a node
+    deeper than radius + band behind the wall)."""
+    count = 0
+    for e in range(seen):
+        nx = work[e, 1]
+        ny = work[e, 2]
+        nz = work[e, 3]
+        if nx * bnx + ny * bny + nz * bnz <= 0.0:
+            continue
+        w = reach - math.sqrt(work[e, 0])
+        if w > 0.0:
+            count = _reach(work, count, w, nx, ny, nz)
+    return _blend(work, count, bnx, bny, bnz)
+
+
+@njit(cache=True)
+def _segment_normal(p0, p1, pos, tri, faces, start, stop, reach, work, bnx, bny, bnz):
+    """`_node_normal` for a segment capsule: the faces whose closest point is in the segment's
+    interior and closer than reach = radius + band, weighted by reach - distance."""
+    count = 0
+    for j in range(start, stop):
+        f = faces[j]
+        a = pos[tri[f, 0]]
+        bb = pos[tri[f, 1]]
+        c = pos[tri[f, 2]]
+        nx, ny, nz = face_normal(a, bb, c)
+        if nx * bnx + ny * bny + nz * bnz <= 0.0:
+            continue
+        s0 = (p0[0] - a[0]) * nx + (p0[1] - a[1]) * ny + (p0[2] - a[2]) * nz
+        s1 = (p1[0] - a[0]) * nx + (p1[1] - a[1]) * ny + (p1[2] - a[2]) * nz
+        if s0 <= 0.0 or s1 <= 0.0:
+            continue
+        s, wa, wb, wc, d2 = closest_segment_triangle(p0, p1, a, bb, c)
+        if s <= 1e-9 or s >= 1.0 - 1e-9:
+            continue
+        w = reach - math.sqrt(d2)
+        if w > 0.0:
+            count = _reach(work, count, w, nx, ny, nz)
+    return _blend(work, count, bnx, bny, bnz)
 
 
 @njit(cache=True)

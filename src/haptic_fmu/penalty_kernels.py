@@ -127,3 +127,72 @@ def distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_dept
         count += 1
         energy += penalty_energy(depth, law, k, d0)
     return max_depth, count, energy
+
+
+@njit(cache=True)
+def tip_stiffness(fmag, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri, slot, W,
+                  n_tool, n_segments, law, k, b, d0, dt, out):
+    """out (3, 3): K = -d F_tip / d x_tip (N/m), the stiffness of the force on the last tool point
+    (the catheter tip) against the tip's own motion, as this step's response gives it.
+
+    The tip's contact (its node, and the last segment's with its share s of the segment force)
+    pushes by f n with f = phi(depth, rate); the tip moving by dx changes the depth by -n . dx and
+    the differenced rate by -n . dx / dt, so K = sum c^2 s_eff n n^T with s = phi_depth +
+    phi_rate / dt, c = 1 for the node and s for the segment. Against the yielding wall (W, slot
+    non-empty: the compliance local model) the wall gives way by w = a^T W a per newton (a the
+    contact's weighted normal on its face's patch slots), so s_eff = s / (1 + s w), k / (1 + k w)
+    for the linear law. Contacts that push nothing (f <= 0) add nothing.
+    """
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = 0.0
+    tip = n_tool - 1
+    for which in range(2):
+        if which == 0:
+            i = tip
+            share = 1.0
+        else:
+            if n_segments < 1:
+                break
+            i = n_tool + n_segments - 1
+            share = contact_s[i]
+        f = contact_face[i]
+        if f < 0 or fmag[i] <= 0.0:
+            continue
+        s_delta, s_rate = penalty_slopes(contact_depth[i], contact_rate[i], law, k, b, d0)
+        s = s_delta + s_rate / dt
+        if s <= 0.0:
+            continue
+        w = 0.0
+        if W.shape[0] > 0:
+            for j in range(3):
+                sj = slot[tri[f, j]]
+                if sj < 0:
+                    continue
+                for l in range(3):
+                    sl = slot[tri[f, l]]
+                    if sl < 0:
+                        continue
+                    acc = 0.0
+                    for p in range(3):
+                        for q in range(3):
+                            acc += contact_n[i, p] * W[3 * sj + p, 3 * sl + q] * contact_n[i, q]
+                    w += contact_w[i, j] * contact_w[i, l] * acc
+        s_eff = share * share * s / (1.0 + s * w)
+        for r in range(3):
+            for c in range(3):
+                out[r, c] += s_eff * contact_n[i, r] * contact_n[i, c]
+
+
+@njit(cache=True)
+def rigid_response(contact_face, contact_w, contact_n, contact_s, contact_depth, contact_rate, tri, local_to_global,
+                   n_tool, n_segments, law, k, b, d0, dt, fmag, node_force, tissue_force, force_sum, tip_k):
+    """The response against a rigid local model in one call (the 1 kHz path): `penalty_forces`,
+    `distribute`, then the tip's stiffness into tip_k (3, 3) (`tip_stiffness`, no wall compliance).
+    Returns (max depth, contact count, penalty energy)."""
+    penalty_forces(contact_face, contact_depth, contact_rate, law, k, b, d0, fmag)
+    result = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri, local_to_global,
+                        n_tool, law, k, d0, node_force, tissue_force, force_sum)
+    tip_stiffness(fmag, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
+                  contact_face[:0], contact_w[:0, :0], n_tool, n_segments, law, k, b, d0, dt, tip_k)
+    return result

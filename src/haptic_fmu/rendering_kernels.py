@@ -27,7 +27,7 @@ import math
 
 from numba import njit
 
-from .penalty_kernels import LAW_HUNT_CROSSLEY, distribute, penalty_magnitude, penalty_slopes
+from .penalty_kernels import LAW_HUNT_CROSSLEY, distribute, penalty_magnitude, penalty_slopes, tip_stiffness
 
 #: Sweeps of the Gauss-Seidel fallback of the compliance solve (linear convergence; a few contacts).
 GAUSS_SEIDEL_SWEEPS = 500
@@ -401,11 +401,13 @@ def name_patch(pos, vertices, tri, contact_face, contact_point, tool, near_dist,
 
 @njit(cache=True)
 def compliance_response(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
-                        local_to_global, n_tool, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt, max_iter,
-                        tol, fmag, work_i, Wa, D, J, work_f, node_force, tissue_force, force_sum, out):
+                        local_to_global, n_tool, n_segments, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt,
+                        max_iter, tol, fmag, work_i, Wa, D, J, work_f, node_force, tissue_force, force_sum, tip_k, out):
     """The compliance model's response in one call (the 1 kHz path): `compliance_forces`, then
-    `penalty_kernels.distribute`, then the patch's new load g and displacement u = W (g - g_applied)
-    (updated by the changed columns of g only: u is W (g - g_applied) to round-off).
+    `penalty_kernels.distribute`, the tip's stiffness against the yielding wall into tip_k (3, 3)
+    (`penalty_kernels.tip_stiffness`), then the patch's new load g and displacement
+    u = W (g - g_applied) (updated by the changed columns of g only: u is W (g - g_applied) to
+    round-off).
     work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
     (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
     iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
@@ -413,6 +415,8 @@ def compliance_response(contact_face, contact_w, contact_n, contact_depth, conta
                                    work_f[1], work_f[2])
     max_depth, count, energy = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri,
                                           local_to_global, n_tool, law, k, d0, node_force, tissue_force, force_sum)
+    tip_stiffness(fmag, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri, slot, W,
+                  n_tool, n_segments, law, k, b, d0, dt, tip_k)
     # u = W (g - g_applied), updated by the columns whose load changed (at most 9 per contact:
     # the contact faces' vertices; none while nothing touches the patch)
     n3 = g.shape[0]
