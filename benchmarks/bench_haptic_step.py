@@ -146,9 +146,12 @@ def main():
                               30, centerline_path))
     scenarios.append(("centerline 50 pts, continuous, compliance", ContactParameters(), 50,
                       lambda t: centerline_path(t, 50)))
-    scenarios.append(("centerline 30 pts, continuous, cubic, passivity, compliance",
-                      ContactParameters(tool="centerline", interpolation="cubic", passivity_controller=True),
-                      30, centerline_path))
+    scenarios.append(("centerline 30 pts, continuous, cubic, compliance",
+                      ContactParameters(tool="centerline", interpolation="cubic"), 30, centerline_path))
+    # The passivity controller is for a device probe only (the contact refuses it on a catheter).
+    scenarios.append(("probe, continuous, passivity, compliance",
+                      ContactParameters(tool="probe", passivity_controller=True), 1,
+                      lambda t: probe_path(t, r_wall)))
     for detection in ("continuous", "discrete"):
         for policy in ("compliance", "hold"):
             scenarios.append((f"probe, {detection}, {policy}",
