@@ -95,13 +95,13 @@ class Statistics:
         t = self.seconds(tick)
         h = self.seconds(comp.step) if tick else 0.0
         for kind, port, ref in self.by_component[comp.name]:
-            value = outputs[port]
+            values = outputs[port].tolist()  # plain floats: cheaper than numpy for a few values
             if kind == "peaks":
-                magnitude = math.sqrt(float(value @ value)) if value.size > 1 else abs(float(value[0]))
+                magnitude = math.hypot(*values) if len(values) > 1 else abs(values[0])
                 if magnitude > self.peaks[ref][0]:
                     self.peaks[ref] = (magnitude, t)
             elif kind == "energy":
-                v = float(value[0]) if value.size == 1 else math.sqrt(float(value @ value))
+                v = values[0] if len(values) == 1 else math.hypot(*values)
                 e = self.energy.get(ref)
                 if e is None:
                     e = self.energy[ref] = {"initial": v, "final": v, "min": v, "max": v}
@@ -111,7 +111,7 @@ class Statistics:
                 if v > e["max"]:
                     e["max"] = v
             else:
-                on = bool(value[0] != 0)
+                on = values[0] != 0
                 w = self.warnings.get(ref)
                 if w is None:
                     w = self.warnings[ref] = {"count": 0, "time_on_s": 0.0, "first_s": None, "_on": False}
