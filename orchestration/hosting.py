@@ -140,9 +140,9 @@ class InProcessFmu:
         self._input_index: dict[str, int] = {}
         self._output_views: dict[str, np.ndarray] = {}
         self._configured = False
-        # the hot path's calls into the binding, bound once (they raise until there is an instance)
+        # the hot path's inputs and their push, bound by configure()
         self._input_ports: dict = {}
-        self._push_port = self._do_step = self._pull = self._not_ready
+        self._push_port = self._not_ready
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
@@ -160,7 +160,6 @@ class InProcessFmu:
             self.instance = Fmi3Instance(self._library, self.name, description.instantiation_token,
                                          resource_path(self._unzip_dir), messages=self.messages,
                                          on_message=self._log if self._logger is not None else None)
-            self._do_step, self._pull = self.instance.do_step, self.instance.pull
         except FmuCallError:
             self._release_library()
             raise
@@ -282,20 +281,32 @@ class InProcessFmu:
             push(port)
 
     def get_outputs(self) -> dict[str, np.ndarray]:
-        self._pull()
+        try:
+            self.instance.pull()
+        except AttributeError:  # no instance (yet, or any more)
+            if self.instance is None:
+                self._require_instance("get_outputs")
+            raise
         return {name: view.copy() for name, view in self._output_views.items()}
 
     def step(self, t: float, h: float) -> StepResult:
         """fmi3DoStep; records its out-flags in ``terminate_requested``, ``early_return`` and
         ``last_successful_time`` and returns them all (see :class:`~orchestration.fmi3.StepResult`)."""
-        result = StepResult(*self._do_step(t, h))
+        if self.instance is None:
+            self._require_instance("start_step")
+        result = StepResult(*self.instance.do_step(t, h))
         _, self.terminate_requested, self.early_return, self.last_successful_time = result
         return result
 
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
         if inputs:
             self.set_inputs(inputs)
-        _, self.terminate_requested, self.early_return, self.last_successful_time = self._do_step(t, h)
+        try:
+            _, self.terminate_requested, self.early_return, self.last_successful_time = self.instance.do_step(t, h)
+        except AttributeError:  # no instance (yet, or any more)
+            if self.instance is None:
+                self._require_instance("start_step")
+            raise
 
     def finish_step(self) -> dict[str, np.ndarray]:
         return self.get_outputs()
@@ -323,8 +334,8 @@ class InProcessFmu:
                 logger.warning("%s: fmi3FreeInstance failed: %s", self.name, exc)
         self.unbind()
         self._configured = False
-        self._do_step = self._pull = self._not_ready
         self._release_library()
+        self.instance = None
 
     def _release_library(self) -> None:
         library, self._library = self._library, None
@@ -344,8 +355,8 @@ class InProcessFmu:
         self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)
 
     def _not_ready(self, *args) -> None:
-        """Stands for the binding's hot-path calls before instantiate() and after terminate()."""
-        self._require_instance("start_step, finish_step or get_outputs")
+        """Stands for the binding's push before configure() and after terminate()."""
+        self._require_instance("set_inputs")
         raise RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
 
     def _unconfigured_input(self, name: str) -> Exception:
