@@ -26,7 +26,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import FMI_WARNING, LOG_LEVELS, FmuCallError
+from .errors import LOG_LEVELS, FmuCallError
 from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, resource_path,
                    slot_layout)
 from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
@@ -34,7 +34,7 @@ from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 logger = logging.getLogger(__name__)
 
 __all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists", "slot_layout",
-           "write_inputs", "NATIVE_DTYPES"]
+           "NATIVE_DTYPES"]
 
 
 
@@ -91,27 +91,6 @@ def check_port_lists(component: str, ports: dict[str, PortInfo], inputs: list[st
             if kind == "input" and port.causality not in ("input", "parameter"):
                 raise PortConfigurationError(
                     f"{component}.{name} is a {port.causality}, not an input: it cannot be written while stepping")
-
-
-def write_inputs(component: str, slots: dict[str, np.ndarray], index: dict[str, int],
-                 values: dict[str, np.ndarray]):
-    """Copy ``values`` into their float64 ``slots`` (every one checked before any is written);
-    return the indices of the inputs to push, or None for all of them."""
-    checked = []
-    for name, value in values.items():
-        slot = slots.get(name)
-        if slot is None:
-            raise PortConfigurationError(f"{component}.{name} is not among the configured inputs "
-                                         f"({', '.join(slots) or 'none'}): list it in configure()")
-        value = np.asarray(value, dtype=np.float64)
-        if value.size != slot.size:
-            raise ValueError(f"{component}.{name} expects {slot.size} value(s), got {value.size}")
-        checked.append((slot, value))
-    for slot, value in checked:
-        np.copyto(slot, value.reshape(slot.size))
-    if len(values) == len(slots):
-        return None
-    return tuple(index[name] for name in values)
 
 
 class InProcessFmu:
