@@ -239,7 +239,7 @@ def _pointer(array: np.ndarray, fmi_type: str):
     return array.ctypes.data_as(ctypes.POINTER(_NUMERIC[fmi_type][1]))
 
 
-@dataclass(slots=True)
+@dataclass
 class _InputPort:
     """A writable port: its float64 slot and, for other types, the native buffer it is cast to."""
 
@@ -255,7 +255,7 @@ class _InputPort:
     cast: bool    # native is not slot
 
 
-@dataclass(slots=True)
+@dataclass
 class _OutputGroup:
     """Observed ports of one type, read with one call into ``native`` then cast into ``slot``."""
 
@@ -297,8 +297,9 @@ class Fmi3Instance:
         self._do_step_raw = library.functions.get("fmi3DoStep") or self._no_do_step
         self._log_callback = LogMessageCallback(self._log)       # kept alive as long as the instance
         self._update_callback = IntermediateUpdateCallback()       # NULL: no intermediate updates
-        self._handle: ctypes.c_void_p | None = None
-        self._live: ctypes.c_void_p | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
+        # the instance's address (a Python int converts to a pointer argument faster than a c_void_p)
+        self._handle: int | None = None
+        self._live: int | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
         self._inputs: list[_InputPort] = []
         self._input_ports: dict[str, _InputPort] = {}
         self._input_index: dict[str, int] = {}
@@ -306,15 +307,14 @@ class Fmi3Instance:
         self.input_slots: dict[str, np.ndarray] = {}
         self.output_views: dict[str, np.ndarray] = {}
         # fmi3DoStep's out-arguments, allocated once
-        # (terminateSimulation and earlyReturn side by side, so that one read of a 16-bit word tells
-        # whether either is set)
-        self._event = ctypes.c_bool()
-        self._stop_flags = (ctypes.c_bool * 2)()
-        self._stop_word = ctypes.c_uint16.from_buffer(self._stop_flags)
+        # (eventHandlingNeeded, terminateSimulation and earlyReturn side by side in one 32-bit word:
+        # one read tells whether any is set)
+        self._flags = (ctypes.c_bool * 4)()
+        self._flag_word = ctypes.c_uint32.from_buffer(self._flags)
         self._last_time = ctypes.c_double()
-        address = ctypes.addressof(self._stop_flags)
-        self._step_refs = (ctypes.pointer(self._event), ctypes.cast(address, c_bool_p),
-                           ctypes.cast(address + 1, c_bool_p), ctypes.pointer(self._last_time))
+        address = ctypes.addressof(self._flags)
+        self._step_refs = (ctypes.cast(address, c_bool_p), ctypes.cast(address + 1, c_bool_p),
+                           ctypes.cast(address + 2, c_bool_p), ctypes.pointer(self._last_time))
         instantiate = self._function("fmi3InstantiateCoSimulation")
         mark = len(self.messages)
         address = instantiate(name.encode(), instantiation_token.encode(),
@@ -324,7 +324,7 @@ class Fmi3Instance:
         if not address:
             reason = self._logged_reason(mark) if len(self.messages) > mark else "it returned NULL and logged no reason"
             raise FmuCallError(name, "fmi3InstantiateCoSimulation", None, reason)
-        self._handle = self._live = ctypes.c_void_p(address)
+        self._handle = self._live = int(address)
 
     # -- errors ------------------------------------------------------------------------------------
     def _log(self, environment, status, category, message) -> None:
@@ -371,7 +371,7 @@ class Fmi3Instance:
             raise FmuCallError(self.name, name, self.time, f"the FMU's binary does not export {name}")
         return function
 
-    def _require(self, call: str) -> ctypes.c_void_p:
+    def _require(self, call: str) -> int:
         if self._handle is None:
             raise RuntimeError(f"{self.name}: {call} after fmi3FreeInstance")
         if self.fatal:
@@ -546,10 +546,6 @@ class Fmi3Instance:
         """The bound inputs by name: records with ``slot`` (the float64 view) and ``size``, for :meth:`push_port`."""
         return self._input_ports
 
-    def push_port(self, port: _InputPort) -> None:
-        """Write one bound input's slot to the FMU (``port`` from :attr:`input_ports`)."""
-        self._push(port)
-
     def write_inputs(self, values: Mapping[str, np.ndarray]) -> None:
         """Copy ``values`` (float64-convertible arrays of the ports' sizes) into their input slots and
         push each to the FMU. KeyError for a name that is not a bound input, ValueError for a wrong size."""
@@ -587,6 +583,9 @@ class Fmi3Instance:
         if status or len(messages) != mark:
             self._check(port.call, status, mark)
 
+    #: Write one bound input's slot to the FMU (``port`` from :attr:`input_ports`).
+    push_port = _push
+
     def pull(self) -> None:
         """Read every observed port into the output buffer."""
         handle = self._live
@@ -622,15 +621,16 @@ class Fmi3Instance:
             self._require("fmi3DoStep")
         messages = self.messages
         mark = len(messages)
-        status = self._do_step_raw(handle, t, h, no_set_fmu_state_prior, *self._step_refs)
+        refs = self._step_refs  # (indexed, not *refs: a star call builds a list)
+        status = self._do_step_raw(handle, t, h, no_set_fmu_state_prior, refs[0], refs[1], refs[2], refs[3])
         if status or len(messages) != mark:
             self._step_problem(t, status, mark)
-        if self._stop_word.value:
-            terminate, early = self._stop_flags
-            last = self.time = self._last_time.value
-            return self._event.value, terminate, early, last
+        if self._flag_word.value:
+            event, terminate, early, _ = self._flags
+            last = self.time = self._last_time.value if terminate or early else t + h
+            return event, terminate, early, last
         end = self.time = t + h
-        return self._event.value, False, False, end
+        return False, False, False, end
 
     def _no_do_step(self, *args) -> None:
         self._function("fmi3DoStep")  # raises: the binary does not export it
@@ -639,7 +639,7 @@ class Fmi3Instance:
         """Raise for a failed fmi3DoStep, unless it is fmi3Discard with terminateSimulation."""
         self.time = t
         if status == FMI_DISCARD:
-            if self._stop_flags[0]:
+            if self._flags[1]:
                 return
             messages = self.messages
             reason = self._logged_reason(mark) if len(messages) > mark else "the FMU logged no reason"

@@ -26,7 +26,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import FMI_WARNING, LOG_LEVELS, FmuCallError
+from .errors import LOG_LEVELS, FmuCallError
 from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, resource_path,
                    slot_layout)
 from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
@@ -34,7 +34,7 @@ from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 logger = logging.getLogger(__name__)
 
 __all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists", "slot_layout",
-           "write_inputs", "NATIVE_DTYPES"]
+           "NATIVE_DTYPES"]
 
 
 
@@ -93,27 +93,6 @@ def check_port_lists(component: str, ports: dict[str, PortInfo], inputs: list[st
                     f"{component}.{name} is a {port.causality}, not an input: it cannot be written while stepping")
 
 
-def write_inputs(component: str, slots: dict[str, np.ndarray], index: dict[str, int],
-                 values: dict[str, np.ndarray]):
-    """Copy ``values`` into their float64 ``slots`` (every one checked before any is written);
-    return the indices of the inputs to push, or None for all of them."""
-    checked = []
-    for name, value in values.items():
-        slot = slots.get(name)
-        if slot is None:
-            raise PortConfigurationError(f"{component}.{name} is not among the configured inputs "
-                                         f"({', '.join(slots) or 'none'}): list it in configure()")
-        value = np.asarray(value, dtype=np.float64)
-        if value.size != slot.size:
-            raise ValueError(f"{component}.{name} expects {slot.size} value(s), got {value.size}")
-        checked.append((slot, value))
-    for slot, value in checked:
-        np.copyto(slot, value.reshape(slot.size))
-    if len(values) == len(slots):
-        return None
-    return tuple(index[name] for name in values)
-
-
 class InProcessFmu:
     """One FMU instance loaded into this process through the FMI 3.0 binding.
 
@@ -140,9 +119,9 @@ class InProcessFmu:
         self._input_index: dict[str, int] = {}
         self._output_views: dict[str, np.ndarray] = {}
         self._configured = False
-        # the hot path's calls into the binding, bound once (they raise until there is an instance)
+        # the hot path's inputs and their push, bound by configure()
         self._input_ports: dict = {}
-        self._push_port = self._do_step = self._pull = self._not_ready
+        self._push_port = self._not_ready
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
@@ -160,7 +139,6 @@ class InProcessFmu:
             self.instance = Fmi3Instance(self._library, self.name, description.instantiation_token,
                                          resource_path(self._unzip_dir), messages=self.messages,
                                          on_message=self._log if self._logger is not None else None)
-            self._do_step, self._pull = self.instance.do_step, self.instance.pull
         except FmuCallError:
             self._release_library()
             raise
@@ -282,20 +260,32 @@ class InProcessFmu:
             push(port)
 
     def get_outputs(self) -> dict[str, np.ndarray]:
-        self._pull()
+        try:
+            self.instance.pull()
+        except AttributeError:  # no instance (yet, or any more)
+            if self.instance is None:
+                self._require_instance("get_outputs")
+            raise
         return {name: view.copy() for name, view in self._output_views.items()}
 
     def step(self, t: float, h: float) -> StepResult:
         """fmi3DoStep; records its out-flags in ``terminate_requested``, ``early_return`` and
         ``last_successful_time`` and returns them all (see :class:`~orchestration.fmi3.StepResult`)."""
-        result = StepResult(*self._do_step(t, h))
+        if self.instance is None:
+            self._require_instance("start_step")
+        result = StepResult(*self.instance.do_step(t, h))
         _, self.terminate_requested, self.early_return, self.last_successful_time = result
         return result
 
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
         if inputs:
             self.set_inputs(inputs)
-        _, self.terminate_requested, self.early_return, self.last_successful_time = self._do_step(t, h)
+        try:
+            _, self.terminate_requested, self.early_return, self.last_successful_time = self.instance.do_step(t, h)
+        except AttributeError:  # no instance (yet, or any more)
+            if self.instance is None:
+                self._require_instance("start_step")
+            raise
 
     def finish_step(self) -> dict[str, np.ndarray]:
         self._pull()
@@ -324,8 +314,8 @@ class InProcessFmu:
                 logger.warning("%s: fmi3FreeInstance failed: %s", self.name, exc)
         self.unbind()
         self._configured = False
-        self._do_step = self._pull = self._not_ready
         self._release_library()
+        self.instance = None
 
     def _release_library(self) -> None:
         library, self._library = self._library, None
@@ -345,8 +335,8 @@ class InProcessFmu:
         self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)
 
     def _not_ready(self, *args) -> None:
-        """Stands for the binding's hot-path calls before instantiate() and after terminate()."""
-        self._require_instance("start_step, finish_step or get_outputs")
+        """Stands for the binding's push before configure() and after terminate()."""
+        self._require_instance("set_inputs")
         raise RuntimeError(f"{self.name}: call configure(inputs, observed) before setting inputs")
 
     def _unconfigured_input(self, name: str) -> Exception:

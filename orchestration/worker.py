@@ -26,7 +26,7 @@ from multiprocessing.shared_memory import SharedMemory
 import numpy as np
 
 from .errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
-from .hosting import InProcessFmu, check_port_lists, slot_layout, write_inputs
+from .hosting import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
 from .ports import FmuDescription, PortInfo
 
 logger = logging.getLogger(__name__)
@@ -165,7 +165,20 @@ class WorkerFmu:
     # -- hot path ----------------------------------------------------------------------------------
     def _write_inputs(self, values: dict[str, np.ndarray]):
         """Copy ``values`` into their slots; return what the worker must push (None: all inputs)."""
-        return write_inputs(self.name, self._input_slots, self._input_index, values)
+        slots = self._input_slots
+        for name, value in values.items():
+            slot = slots.get(name)
+            if slot is None:
+                raise PortConfigurationError(f"{self.name}.{name} is not among the configured inputs "
+                                             f"({', '.join(self._inputs) or 'none'}): list it in configure()")
+            value = np.asarray(value, dtype=np.float64)
+            if value.size != slot.size:
+                raise ValueError(f"{self.name}.{name} expects {slot.size} value(s), got {value.size}")
+            np.copyto(slot, value.reshape(slot.size))
+        if len(values) == len(self._inputs):
+            return None
+        index = self._input_index
+        return tuple(index[name] for name in values)
 
     def set_inputs(self, values: dict[str, np.ndarray]) -> None:
         self._require_idle("set_inputs")
