@@ -155,6 +155,29 @@ def test_a_keyboard_interrupt_inside_a_step_is_an_error_and_reset_recovers(synth
         assert fmu.get("y") == H
 
 
+@pytest.mark.parametrize("index, kind, words", [(0, 0, "NaN"), (11, 1, "infinity"), (18, 2, "infinity")])
+def test_a_non_finite_output_after_a_step_is_an_error(synthetic_fmus, index, kind, words):
+    """The layer scans every Float64 output after each step (in blocks of 8 values, then the tail)."""
+    with fmu_instance(synthetic_fmus["Faulty"]) as fmu:
+        fmu.set("bad_at", 0.02)
+        fmu.set("bad_index", index)
+        fmu.set("bad_kind", kind)
+        fmu.initialize()
+        fmu.slave.doStep(0.0, H)
+        fmu.slave.doStep(H, H)
+        np.testing.assert_array_equal(fmu.get("ys"), np.full(19, 2 * H))
+        fmu.expect_step_error(2 * H, H, "NaN or an infinity in output 'ys'", f"(value {index})")
+        fmu.expect_step_error(3 * H, H, "Error mode", "NaN or an infinity")
+        fmu.slave.reset()  # back to the start values
+        fmu.set("bad_at", 0.02)
+        fmu.set("bad_index", index)
+        fmu.set("bad_kind", 3)  # the largest finite number is no error
+        fmu.initialize()
+        for k in range(4):
+            fmu.slave.doStep(k * H, H)
+        assert fmu.get("ys")[index] == 1.7976931348623157e308
+
+
 def test_two_instances_of_one_fmu_are_independent(synthetic_fmus):
     with fmu_instance(synthetic_fmus["Echo"], instance_name="a") as a, \
             fmu_instance(synthetic_fmus["Echo"], instance_name="b") as b:
@@ -172,11 +195,14 @@ def test_two_instances_of_one_fmu_are_independent(synthetic_fmus):
 # -- FMU state -------------------------------------------------------------------------------------------
 #: FMU -> (steps before the save, steps after, input, value, outputs compared)
 STATE_CASES = {
-    "Catheter": (40, 60, "tip_force", [0.6, 0.1, 0.0], ["centerline_positions", "bend_angle", "actuator_command"]),
+    "Catheter": (40, 60, "tip_force", [0.6, 0.1, 0.0],
+                 ["centerline_positions", "tip_position", "bend_angle", "actuator_command"]),
     # a probe pressed into the sac wall (the default catheter points far inside the lumen, 31 of them)
     "Contact": (40, 60, "tool_positions", np.tile([0.0235, 0.0, 0.065], 31),
-                ["tool_force", "tissue_contact_force", "passivity_energy", "contact_energy"]),
-    "Tissue": (3, 3, "contact_force", np.full(8064, 2e-4), ["surface_positions", "strain_energy", "kinetic_energy"]),
+                ["tool_force", "tip_force", "tissue_contact_force", "patch_nodes", "passivity_energy",
+                 "contact_energy"]),
+    "Tissue": (3, 3, "contact_force", np.full(8064, 2e-4),
+               ["surface_positions", "surface_velocities", "strain_energy", "kinetic_energy"]),
 }
 
 
@@ -195,10 +221,12 @@ def test_fmu_state_restores_bit_identically(name, catheter_fmu, contact_fmu, tis
     before, after = STATE_CASES[name][:2]
     with fmu_instance(fmus[name]) as fmu:
         fmu.initialize()
-        _drive(fmu, name, 0, before)
+        saved = _drive(fmu, name, 0, before)
         state = fmu.slave.getFMUState()
         first = _drive(fmu, name, before, after)
         fmu.slave.setFMUState(state)
+        for port in saved:  # the outputs at the save, before any step (the models write them in place)
+            np.testing.assert_array_equal(np.atleast_1d(fmu.get(port)), saved[port])
         again = _drive(fmu, name, before, after)
         serialized = fmu.slave.serializeFMUState(state)
         fmu.slave.freeFMUState(state)
