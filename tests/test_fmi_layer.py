@@ -155,6 +155,20 @@ def test_a_keyboard_interrupt_inside_a_step_is_an_error_and_reset_recovers(synth
         assert fmu.get("y") == H
 
 
+def test_a_warning_logged_in_a_step_makes_that_step_fmi3warning(synthetic_fmus):
+    from fmpy.fmi3 import fmi3Boolean, fmi3Float64
+
+    with fmu_instance(synthetic_fmus["Faulty"]) as fmu:
+        fmu.set("warn_at", H)
+        fmu.initialize()
+        do_step = fmu.slave._functions["fmi3DoStep"]  # the raw call: FMPy's doStep hides the status
+        refs = [fmi3Boolean(), fmi3Boolean(), fmi3Boolean(), fmi3Float64()]
+        statuses = [do_step(fmu.slave.component, k * H, H, True, *refs) for k in range(3)]
+        assert statuses == [0, 1, 0]  # fmi3OK, fmi3Warning, fmi3OK
+        assert fmu.get("y") == pytest.approx(3 * H) and refs[3].value == pytest.approx(3 * H)
+        assert any(status == 1 and "requested warning at t = 0.01" in m for status, m in fmu.messages)
+
+
 @pytest.mark.parametrize("index, kind, words", [(0, 0, "NaN"), (11, 1, "infinity"), (18, 2, "infinity")])
 def test_a_non_finite_output_after_a_step_is_an_error(synthetic_fmus, index, kind, words):
     """The layer scans every Float64 output after each step (in blocks of 8 values, then the tail)."""
@@ -190,6 +204,35 @@ def test_two_instances_of_one_fmu_are_independent(synthetic_fmus):
             b.slave.doStep(k * H, H)
         assert a.get("integral_u") == pytest.approx(5 * H)
         assert b.get("integral_u") == pytest.approx(-20 * H)
+
+
+def test_two_builds_of_one_fmu_in_one_process_each_run_their_own_code(synthetic_fmus, tmp_path):
+    """Another build of an FMU (other code, other token) loaded beside the first imports its own
+    package under a name of its own, whichever build came first."""
+    import shutil
+    from pathlib import Path
+
+    from orchestration.build import FmuSpec, build_fmu_from_spec
+
+    source = tmp_path / "src" / "synthetic_fmu"
+    shutil.copytree(Path(__file__).resolve().parent / "synthetic" / "synthetic_fmu", source, symlinks=False,
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    text = (source / "fmu.py").read_text()
+    old = "v.integral_u = v.integral_u + v.last_u * dt"
+    assert old in text
+    (source / "fmu.py").write_text(text.replace(old, "v.integral_u = v.integral_u + 2.0 * v.last_u * dt"))
+    other = build_fmu_from_spec(FmuSpec("Echo", "synthetic_fmu", "fmu:ECHO", source_root=source.parent),
+                                tmp_path / "fmus")
+    for first, second in ((synthetic_fmus["Echo"], other), (other, synthetic_fmus["Echo"])):
+        with fmu_instance(first, instance_name="a") as a, fmu_instance(second, instance_name="b") as b:
+            results = []
+            for fmu in (a, b):
+                fmu.initialize()
+                fmu.set("u", 1.0)
+                fmu.slave.doStep(0.0, H)
+                results.append(fmu.get("integral_u"))
+        expected = [H, 2 * H] if first == synthetic_fmus["Echo"] else [2 * H, H]
+        assert results == pytest.approx(expected)
 
 
 # -- FMU state -------------------------------------------------------------------------------------------

@@ -205,7 +205,8 @@ static int cb_counters(void *instance, void *data, uint64_t count) {
 }
 
 /* The step exchange (a numpy array of STEP_IO_SIZE doubles owned by the runtime): fmi3DoStep writes
- * the arguments, the runtime's do_step writes its status and the internal steps it completed. */
+ * the arguments, status OK and all steps completed; the runtime's do_step writes a warning, or an
+ * error and the internal steps it completed. A Python exception out of do_step is an error too. */
 enum { IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, STEP_IO_SIZE };
 
 static int cb_step_io(void *instance, void *data, uint64_t count) {
@@ -907,8 +908,8 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     io[IO_TIME] = currentCommunicationPoint;
     io[IO_STEP] = h;
     io[IO_SUBSTEPS] = substeps;
-    io[IO_STATUS] = fmi3Error;
-    io[IO_COMPLETED] = 0.0;
+    io[IO_STATUS] = fmi3OK;        /* the runtime writes a warning or a failure */
+    io[IO_COMPLETED] = substeps;   /* and, on a failure, the steps it completed */
     PyGILState_STATE gil = py.PyGILState_Ensure();
     PyObject *result = py.PyObject_CallNoArgs(inst->do_step);
     if (result) {

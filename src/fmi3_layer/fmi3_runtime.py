@@ -273,7 +273,7 @@ class _Router(logging.Handler):
             status = ERROR if record.levelno >= logging.ERROR else WARNING
             instance.log(status, f"{record.name}: {record.getMessage()}")
             if status == WARNING:
-                instance.warnings += 1
+                instance.warned()
         except Exception:  # logging must never fail a call
             pass
 
@@ -302,7 +302,6 @@ class RuntimeInstance:
         if step_io(self._c, self._step_io.ctypes.data, self._step_io.size) != 0:
             raise MemoryError("the FMI layer did not take the step exchange")
         self.adapter = None
-        self.warnings = 0
         self._allocate(reset=True)
 
     # -- buffers ------------------------------------------------------------------------------------
@@ -394,34 +393,36 @@ class RuntimeInstance:
             self._router.current.instance = None
 
     def do_step(self) -> None:
-        """One fmi3DoStep: from the step exchange's t, ``substeps`` internal steps of ``h / substeps``;
-        the status and the number of steps completed go back through the exchange."""
+        """One fmi3DoStep: from the step exchange's t, ``substeps`` internal steps of ``h / substeps``.
+        The exchange arrives with status OK and all steps completed; a failure writes ERROR and the
+        steps it completed, a warning logged during the step WARNING (``warned``)."""
         io = self._io
-        t, h, substeps = io[IO_TIME], io[IO_STEP], int(io[IO_SUBSTEPS])
-        adapter = self.adapter
-        self.warnings = 0
+        t, h, substeps = io[IO_TIME], io[IO_STEP], io[IO_SUBSTEPS]
         current = self._current
         current.instance = self
         done = 0
         try:
-            if substeps == 1:  # h / 1 is h: the same numbers as the loop
-                adapter.step(t, h)
-                done = 1
+            if substeps == 1.0:  # h / 1 is h: the same numbers as the loop
+                self.adapter.step(t, h)
             else:
+                adapter, substeps = self.adapter, int(substeps)
                 dt = h / substeps
                 for k in range(substeps):
                     adapter.step(t + k * dt if k else t, dt)
                     done += 1
         except BaseException as exc:
             io[IO_COMPLETED] = done
-            self._fail(f"fmi3DoStep(t = {t:.9g}, h = {h:.9g}) at t = {t + done * (h / substeps):.9g}", exc)
             io[IO_STATUS] = ERROR
+            self._fail(f"fmi3DoStep(t = {t:.9g}, h = {h:.9g}) at t = {t + done * (h / substeps):.9g}", exc)
             return
         finally:
             current.instance = None
         self._time[0] = t + h
-        io[IO_COMPLETED] = done
-        io[IO_STATUS] = WARNING if self.warnings else OK
+
+    def warned(self) -> None:
+        """A warning was logged during this call: a step reports fmi3Warning."""
+        if self._io[IO_STATUS] < WARNING:
+            self._io[IO_STATUS] = WARNING
 
     def terminate(self) -> None:
         terminate = getattr(self.adapter, "terminate", None)
@@ -490,10 +491,9 @@ class RuntimeInstance:
 
 # ---- instantiation ------------------------------------------------------------------------------------
 _routers: dict[str, _Router] = {}
-_tokens: dict[str, str] = {}  # stable module name -> token of the build loaded under it
 
 
-def _load_package(resources: Path, unique: str, package: str):
+def _load_package(resources: Path, unique: str, package: str, token: str):
     """Import the FMU's package from its resources under ``unique`` (never a copy the host has)."""
     module = sys.modules.get(unique)
     if module is not None:
@@ -506,6 +506,7 @@ def _load_package(resources: Path, unique: str, package: str):
     spec = importlib.util.spec_from_file_location(unique, package_dir / "__init__.py",
                                                   submodule_search_locations=[str(package_dir)])
     module = importlib.util.module_from_spec(spec)
+    module.__fmu_instantiation_token__ = token  # the build loaded under this name (see instantiate)
     sys.modules[unique] = module
     try:
         spec.loader.exec_module(module)
@@ -529,12 +530,13 @@ def instantiate(resources: str, model_identifier: str, token: str, instance_name
         raise ValueError(f"instantiationToken {token!r} does not match this FMU's {meta['instantiation_token']!r}: "
                          "the modelDescription.xml and the resources are from different builds")
     # A stable name (states serialized by one process load in another, numba's cache refers to
-    # it); another build of the same FMU in this process gets a name of its own.
+    # it); another build of the same FMU in this process gets a name of its own. Each build has
+    # its own copy of this module, so the build under a name is told by the package's token.
     unique = f"{model_identifier}_{meta['package']}"
-    loaded = _tokens.setdefault(unique, token)
-    if loaded != token:
+    loaded = sys.modules.get(unique)
+    if loaded is not None and getattr(loaded, "__fmu_instantiation_token__", None) != token:
         unique = f"{unique}_{''.join(c for c in token if c.isalnum())[:16]}"
-    package = _load_package(resources, unique, meta["package"])
+    package = _load_package(resources, unique, meta["package"], token)
     module_name, _, attribute = meta["declaration"].partition(":")
     declaration = getattr(importlib.import_module(f"{unique}.{module_name}"), attribute)
     router = _routers.get(unique)

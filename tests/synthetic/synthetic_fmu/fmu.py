@@ -5,11 +5,13 @@ Before the first step an FMU's time is the start time of ``fmi3EnterInitializati
 """
 from __future__ import annotations
 
+import logging
 import os
 
 from ._fmi import FmuDeclaration, input_port, output, parameter, structural
 
 DEFAULT_STEP = 0.01
+logger = logging.getLogger(__name__)
 
 
 def polynomial(coefficients, t: float) -> float:
@@ -136,6 +138,8 @@ class Faulty:
             raise ValueError(f"requested error at t = {t!r}")
         if v.interrupt_at >= 0.0 and t >= v.interrupt_at:
             raise KeyboardInterrupt  # as a Ctrl-C arriving while the FMU computes
+        if v.warn_at >= 0.0 and abs(t - v.warn_at) < 0.5 * dt:
+            logger.warning("requested warning at t = %r", t)  # the step returns fmi3Warning
         v.y = t + dt
         ys = v.ys
         ys[...] = t + dt
@@ -151,6 +155,7 @@ FAULTY = FmuDeclaration(
         parameter("crash_at", -1.0, "steps starting at t >= crash_at abort the process (negative: never)", "s"),
         parameter("interrupt_at", -1.0, "steps starting at t >= interrupt_at raise KeyboardInterrupt (negative: never)",
                   "s"),
+        parameter("warn_at", -1.0, "the step starting at t = warn_at logs a warning (negative: never)", "s"),
         parameter("bad_at", -1.0, "steps starting at t >= bad_at write BAD_VALUES[bad_kind] into ys[bad_index] "
                   "(negative: never)", "s"),
         parameter("bad_index", 0, "which value of ys goes bad"),
