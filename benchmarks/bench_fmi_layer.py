@@ -1,12 +1,20 @@
-"""Cost of the FMI layer per 1 kHz component step: Contact.fmu step minus the same model step called directly.
+"""Cost of the FMI layer per 1 kHz component step: the FMU's step minus the same model step called directly.
 
-One FMU step as the orchestrator makes it: set the Contact inputs (the 31-point catheter
+Contact: one FMU step as the orchestrator makes it: set the Contact inputs (the 31-point catheter
 centerline, 93 values), ``fmi3DoStep``, get the observed outputs (tool and tip force, penetration,
 energies: 9 Float64 values, plus the 8064-value tissue contact force and the Int32 contact
-count). The FMU is called through its raw C functions on preallocated numpy buffers (as the
-in-process host does); the direct loop calls ``ContactModel.step`` with the same inputs and copies
-the same outputs. Both run the same catheter path (pressing the tip into the default AAA wall),
-alternating in blocks in one process so that machine noise hits both alike.
+count). The direct loop calls ``ContactModel.step`` with the same inputs and copies the same
+outputs. Both run the same catheter path (pressing the tip into the default AAA wall).
+
+Catheter: set insertion, rotation and the tip force (5 values), ``fmi3DoStep``, get the Float64
+outputs (centerline 93 values, tip position, bend angle, command, advice, force magnitude, total
+bend: 101 values) and the Boolean warning; the direct loop calls ``CatheterModel.step`` and copies
+the same outputs. Both push the catheter in while a tip force swings.
+
+The FMUs are called through their raw C functions on preallocated numpy buffers (as the
+in-process host does, ctypes included); FMU and direct steps alternate in blocks in one process
+so that machine noise hits both alike, and each reports the median of its steps. The FMI cost is
+the difference of the medians; the last step's outputs must agree to the bit.
 
 Target (issue: the project's own FMI layer): FMI cost <= 10 us per step, from about 120 us with
 pythonfmu3 (the figure measured on this machine before the layer was replaced).
@@ -21,13 +29,16 @@ import time
 
 import numpy as np
 
-from haptic_fmu.model import ContactModel, ContactParameters  # imported first: the host's own copy
+# imported first: the host's own copies (the FMUs import theirs under other names)
+from catheter_fmu.model import CatheterModel, CatheterParameters
+from haptic_fmu.model import ContactModel, ContactParameters
 from orchestration.build import DEFAULT_FMU_DIR, build_fmu, fmu_is_stale
 from tissue_fmu.mesh import aaa_mesh
 
 DT = 1e-3
 BLOCK = 500
 BLOCKS = 12
+CLOCK = time.perf_counter_ns
 
 
 def catheter_path(k: int) -> np.ndarray:
@@ -39,39 +50,87 @@ def catheter_path(k: int) -> np.ndarray:
     return np.stack([x, np.zeros_like(s), z], axis=1)
 
 
-def main() -> None:
-    if fmu_is_stale("Contact"):
-        build_fmu("Contact")
-    from fmpy import extract, read_model_description
-    from fmpy.fmi3 import FMU3Slave, fmi3Boolean, fmi3Float64, fmi3ValueReference
+def catheter_inputs(k: int) -> np.ndarray:
+    """insertion (m), rotation (rad), tip force (N): pushed in while the tip force swings."""
+    t = k * DT
+    return np.array([0.07 + 0.002 * t, 0.2 * np.sin(t), 0.4 * np.sin(3 * t), 0.1, 0.05 * np.cos(2 * t)])
 
-    fmu_path = DEFAULT_FMU_DIR / "Contact.fmu"
-    md = read_model_description(str(fmu_path))
-    refs = {v.name: v.valueReference for v in md.modelVariables}
-    slave = FMU3Slave(guid=md.guid, unzipDirectory=extract(str(fmu_path), tempfile.mkdtemp()),
-                      modelIdentifier="Contact", instanceName="bench")
-    slave.instantiate(loggingOn=False)
-    slave.enterInitializationMode()
-    slave.exitInitializationMode()
-    f = slave._functions
+
+class Fmu:
+    """One FMU instance in Step Mode and its raw C functions (FMPy's ctypes bindings)."""
+
+    def __init__(self, name: str):
+        if fmu_is_stale(name):
+            build_fmu(name)
+        from fmpy import extract, read_model_description
+        from fmpy.fmi3 import FMU3Slave, fmi3Boolean, fmi3Float64, fmi3ValueReference
+
+        path = DEFAULT_FMU_DIR / f"{name}.fmu"
+        md = read_model_description(str(path))
+        self.refs = {v.name: v.valueReference for v in md.modelVariables}
+        self._vr_type = fmi3ValueReference
+        self.slave = FMU3Slave(guid=md.guid, unzipDirectory=extract(str(path), tempfile.mkdtemp()),
+                               modelIdentifier=name, instanceName="bench")
+        self.slave.instantiate(loggingOn=False)
+        self.slave.enterInitializationMode()
+        self.slave.exitInitializationMode()
+        self.f = self.slave._functions
+        self.c = self.slave.component
+        self._flags = [fmi3Boolean() for _ in range(3)]
+        self._last = fmi3Float64()
+        self.step_refs = [ctypes.byref(x) for x in self._flags] + [ctypes.byref(self._last)]
+
+    def vrs(self, names):
+        return (self._vr_type * len(names))(*[self.refs[n] for n in names])
+
+    def close(self) -> None:
+        self.slave.terminate()
+        self.slave.freeInstance()
+
+
+def pointer(array: np.ndarray):
+    ctype = {np.float64: ctypes.c_double, np.int32: ctypes.c_int32, np.bool_: ctypes.c_bool}[array.dtype.type]
+    return array.ctypes.data_as(ctypes.POINTER(ctype))
+
+
+def alternate(fmu_step, direct_step) -> tuple[np.ndarray, np.ndarray]:
+    """Times (us) of BLOCKS * BLOCK steps each, FMU and direct blocks alternating."""
+    fmu_times, direct_times = [], []
+    k_fmu = k_direct = 0
+    for block in range(2 * BLOCKS):
+        if block % 2 == 0:
+            for _ in range(BLOCK):
+                fmu_times.append(fmu_step(k_fmu))
+                k_fmu += 1
+        else:
+            for _ in range(BLOCK):
+                direct_times.append(direct_step(k_direct))
+                k_direct += 1
+    return np.array(fmu_times) / 1e3, np.array(direct_times) / 1e3
+
+
+def report(title: str, fmu_us: np.ndarray, direct_us: np.ndarray) -> float:
+    print(title)
+    print(f"  direct model step (+ output copies)   median {np.median(direct_us):7.1f} us   p99 "
+          f"{np.percentile(direct_us, 99):7.1f} us")
+    print(f"  FMU step (set, fmi3DoStep, get)       median {np.median(fmu_us):7.1f} us   p99 "
+          f"{np.percentile(fmu_us, 99):7.1f} us")
+    cost = float(np.median(fmu_us) - np.median(direct_us))
+    print(f"  FMI layer cost per step (difference of the medians): {cost:.1f} us; FMU / direct = "
+          f"{np.median(fmu_us) / np.median(direct_us):.2f} (target <= 10 us)")
+    return cost
+
+
+def contact() -> float:
+    fmu = Fmu("Contact")
+    f, c = fmu.f, fmu.c
     set_f64, get_f64, get_i32, do_step = f["fmi3SetFloat64"], f["fmi3GetFloat64"], f["fmi3GetInt32"], f["fmi3DoStep"]
-    c = slave.component
-
-    def vrs(names):
-        return (fmi3ValueReference * len(names))(*[refs[n] for n in names])
-
     scalar_names = ["tool_force", "tip_force", "penetration_depth", "contact_energy", "passivity_energy"]
-    in_vr, out_vr, force_vr, count_vr = vrs(["tool_positions"]), vrs(scalar_names), vrs(["tissue_contact_force"]), \
-        vrs(["contact_count"])
-    tool = np.zeros(93)
-    outputs = np.zeros(9)
-    tissue_force = np.zeros(8064)
-    count = np.zeros(1, np.int32)
-    flags = [fmi3Boolean() for _ in range(3)]
-    last = fmi3Float64()
-    refs_out = [ctypes.byref(x) for x in flags] + [ctypes.byref(last)]
-    p_tool, p_out = tool.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), outputs.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
-    p_force, p_count = tissue_force.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), count.ctypes.data_as(ctypes.POINTER(ctypes.c_int32))
+    in_vr, out_vr = fmu.vrs(["tool_positions"]), fmu.vrs(scalar_names)
+    force_vr, count_vr = fmu.vrs(["tissue_contact_force"]), fmu.vrs(["contact_count"])
+    tool, outputs, tissue_force, count = np.zeros(93), np.zeros(9), np.zeros(8064), np.zeros(1, np.int32)
+    p_tool, p_out, p_force, p_count = pointer(tool), pointer(outputs), pointer(tissue_force), pointer(count)
+    refs = fmu.step_refs
 
     mesh = aaa_mesh()
     nodes, triangles = mesh.surface()
@@ -80,49 +139,91 @@ def main() -> None:
     direct_out = np.zeros(9)
     direct_force = np.zeros(8064)
     paths = [catheter_path(k) for k in range(BLOCK * BLOCKS)]
+    contacts = [0]
 
-    fmu_times, direct_times, contacts = [], [], 0
-    k_fmu = k_direct = 0
-    clock = time.perf_counter_ns
-    for block in range(2 * BLOCKS):
-        if block % 2 == 0:
-            for _ in range(BLOCK):
-                tool[:] = paths[k_fmu].ravel()
-                t0 = clock()
-                set_f64(c, in_vr, 1, p_tool, 93)
-                status = do_step(c, k_fmu * DT, DT, True, *refs_out)
-                get_f64(c, out_vr, 5, p_out, 9)
-                get_f64(c, force_vr, 1, p_force, 8064)
-                get_i32(c, count_vr, 1, p_count, 1)
-                fmu_times.append(clock() - t0)
-                if status != 0:
-                    raise SystemExit(f"fmi3DoStep returned {status}")
-                contacts += int(count[0] > 0)
-                k_fmu += 1
-        else:
-            for _ in range(BLOCK):
-                positions = paths[k_direct]
-                t0 = clock()
-                out = model.step(k_direct * DT, DT, positions)
-                direct_out[0:3], direct_out[3:6] = out.tool_force, out.tip_force
-                direct_out[6:9] = out.penetration_depth, out.contact_energy, out.passivity_energy
-                direct_force[:] = out.tissue_contact_force.ravel()
-                direct_times.append(clock() - t0)
-                k_direct += 1
+    def fmu_step(k):
+        tool[:] = paths[k].ravel()
+        t0 = CLOCK()
+        set_f64(c, in_vr, 1, p_tool, 93)
+        status = do_step(c, k * DT, DT, True, *refs)
+        get_f64(c, out_vr, 5, p_out, 9)
+        get_f64(c, force_vr, 1, p_force, 8064)
+        get_i32(c, count_vr, 1, p_count, 1)
+        elapsed = CLOCK() - t0
+        if status != 0:
+            raise SystemExit(f"Contact: fmi3DoStep returned {status}")
+        contacts[0] += int(count[0] > 0)
+        return elapsed
+
+    def direct_step(k):
+        positions = paths[k]
+        t0 = CLOCK()
+        out = model.step(k * DT, DT, positions)
+        direct_out[0:3], direct_out[3:6] = out.tool_force, out.tip_force
+        direct_out[6:9] = out.penetration_depth, out.contact_energy, out.passivity_energy
+        direct_force[:] = out.tissue_contact_force.ravel()
+        return CLOCK() - t0
+
+    fmu_us, direct_us = alternate(fmu_step, direct_step)
     if not (np.array_equal(outputs, direct_out) and np.array_equal(tissue_force, direct_force)):
-        raise SystemExit("the FMU and the direct model disagree on the last step")
-    fmu_us, direct_us = np.array(fmu_times) / 1e3, np.array(direct_times) / 1e3
-    print(f"Contact step, {BLOCK * BLOCKS} steps each, alternating blocks of {BLOCK}; steps with contact: "
-          f"{contacts / len(fmu_times):.0%}")
-    print(f"  direct model step (+ output copies)   median {np.median(direct_us):7.1f} us   p99 "
-          f"{np.percentile(direct_us, 99):7.1f} us")
-    print(f"  FMU step (set, fmi3DoStep, get)       median {np.median(fmu_us):7.1f} us   p99 "
-          f"{np.percentile(fmu_us, 99):7.1f} us")
-    cost = np.median(fmu_us) - np.median(direct_us)
-    print(f"  FMI layer cost per step (difference of the medians): {cost:.1f} us "
-          f"(target <= 10 us; pythonfmu3 cost about 120 us here)")
-    slave.terminate()
-    slave.freeInstance()
+        raise SystemExit("Contact: the FMU and the direct model disagree on the last step")
+    fmu.close()
+    return report(f"Contact step, {BLOCK * BLOCKS} steps each, alternating blocks of {BLOCK}; steps with contact: "
+                  f"{contacts[0] / len(fmu_us):.0%}", fmu_us, direct_us)
+
+
+def catheter() -> float:
+    fmu = Fmu("Catheter")
+    f, c = fmu.f, fmu.c
+    set_f64, get_f64, get_bool, do_step = f["fmi3SetFloat64"], f["fmi3GetFloat64"], f["fmi3GetBoolean"], \
+        f["fmi3DoStep"]
+    in_vr = fmu.vrs(["insertion", "rotation", "tip_force"])
+    float_names = ["centerline_positions", "tip_position", "bend_angle", "actuator_command",
+                   "advised_insertion_scale", "tip_force_magnitude", "total_bend"]
+    out_vr, warning_vr = fmu.vrs(float_names), fmu.vrs(["effort_warning"])
+    inputs, outputs, warning = np.zeros(5), np.zeros(101), np.zeros(1, np.bool_)
+    p_in, p_out, p_warning = pointer(inputs), pointer(outputs), pointer(warning)
+    refs = fmu.step_refs
+
+    model = CatheterModel(CatheterParameters(), dt=DT)
+    direct_out = np.zeros(101)
+    direct_warning = [False]
+    drive = [catheter_inputs(k) for k in range(BLOCK * BLOCKS)]
+    tip_forces = [d[2:5].copy() for d in drive]
+
+    def fmu_step(k):
+        inputs[:] = drive[k]
+        t0 = CLOCK()
+        set_f64(c, in_vr, 3, p_in, 5)
+        status = do_step(c, k * DT, DT, True, *refs)
+        get_f64(c, out_vr, 7, p_out, 101)
+        get_bool(c, warning_vr, 1, p_warning, 1)
+        elapsed = CLOCK() - t0
+        if status != 0:
+            raise SystemExit(f"Catheter: fmi3DoStep returned {status}")
+        return elapsed
+
+    def direct_step(k):
+        insertion, rotation = drive[k][0], drive[k][1]
+        tip_force = tip_forces[k]
+        t0 = CLOCK()
+        out = model.step(k * DT, DT, insertion, rotation, tip_force)
+        direct_out[0:93], direct_out[93:96] = out.centerline_positions, out.tip_position
+        direct_out[96:101] = (out.bend_angle, out.actuator_command, out.advised_insertion_scale,
+                              out.tip_force_magnitude, out.total_bend)
+        direct_warning[0] = out.effort_warning
+        return CLOCK() - t0
+
+    fmu_us, direct_us = alternate(fmu_step, direct_step)
+    if not (np.array_equal(outputs, direct_out) and bool(warning[0]) == bool(direct_warning[0])):
+        raise SystemExit("Catheter: the FMU and the direct model disagree on the last step")
+    fmu.close()
+    return report(f"Catheter step, {BLOCK * BLOCKS} steps each, alternating blocks of {BLOCK}", fmu_us, direct_us)
+
+
+def main() -> None:
+    contact()
+    catheter()
 
 
 if __name__ == "__main__":

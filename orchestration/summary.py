@@ -1,7 +1,7 @@
 """The summary of a run: the dict written as ``summary.json`` and the text printed after a run."""
 from __future__ import annotations
 
-from .errors import status_name
+from .errors import short_status_name
 
 #: A run ends "completed", "terminated" (an FMU asked to stop: terminateSimulation), "interrupted"
 #: (Ctrl-C, SIGTERM) or "failed"; only "failed" and "interrupted" are errors for the command line.
@@ -10,13 +10,8 @@ STATUSES = ("completed", "terminated", "interrupted", "failed")
 
 def fmu_messages(messages: list[tuple[str, int, str]]) -> list[dict]:
     """Log messages at warning level and above, as summary entries."""
-    return [{"component": comp, "status": _short_status(status), "message": text}
+    return [{"component": comp, "status": short_status_name(status), "message": text}
             for comp, status, text in messages if status >= 1]
-
-
-def _short_status(status: int) -> str:
-    name = status_name(status) or ""
-    return name[4:].lower() if name.startswith("fmi3") else name
 
 
 def format_summary(summary: dict, units: dict[str, str]) -> str:

@@ -39,3 +39,28 @@ def test_catheter_model_copies_continue_bit_identically(mode, how):
                 np.testing.assert_array_equal(x, y)
             else:
                 assert x == y
+
+
+def test_outputs_written_into_bound_arrays_are_the_same_bits():
+    """write_outputs_into (an FMU's buffers): the same outputs in the caller's arrays; a deepcopy
+    and get_state keep arrays of their own."""
+    model, bound = CatheterModel(), CatheterModel()
+    _run(model, 0, 200)
+    _run(bound, 0, 200)
+    centerline, tip = np.full((bound.n_tool, 3), np.nan), np.full(3, np.nan)
+    bound.write_outputs_into(centerline, tip)
+    np.testing.assert_array_equal(centerline.ravel(), model.outputs.centerline_positions)
+    np.testing.assert_array_equal(tip, model.outputs.tip_position)
+    state, clone = bound.get_state(), copy.deepcopy(bound)
+    first, again, copied = _run(model, 200, 500), _run(bound, 200, 500), _run(clone, 200, 500)
+    for a, b, c in zip(first, again, copied):
+        for x, y, z in zip(a, b, c):
+            np.testing.assert_array_equal(x, y)
+            np.testing.assert_array_equal(x, z)
+    assert bound.outputs.tip_position is tip and clone.outputs.tip_position is not tip
+    np.testing.assert_array_equal(centerline.ravel(), bound.outputs.centerline_positions)
+    assert state["outputs"].tip_position is not tip                       # a snapshot, not the live array
+    bound.set_state(state)                                                # back into the bound arrays
+    assert bound.outputs.tip_position is tip
+    np.testing.assert_array_equal(tip, state["outputs"].tip_position)
+    np.testing.assert_array_equal(_run(bound, 200, 300)[-1][0], first[99][0])

@@ -155,6 +155,43 @@ def test_a_keyboard_interrupt_inside_a_step_is_an_error_and_reset_recovers(synth
         assert fmu.get("y") == H
 
 
+def test_a_warning_logged_in_a_step_makes_that_step_fmi3warning(synthetic_fmus):
+    from fmpy.fmi3 import fmi3Boolean, fmi3Float64
+
+    with fmu_instance(synthetic_fmus["Faulty"]) as fmu:
+        fmu.set("warn_at", H)
+        fmu.initialize()
+        do_step = fmu.slave._functions["fmi3DoStep"]  # the raw call: FMPy's doStep hides the status
+        refs = [fmi3Boolean(), fmi3Boolean(), fmi3Boolean(), fmi3Float64()]
+        statuses = [do_step(fmu.slave.component, k * H, H, True, *refs) for k in range(3)]
+        assert statuses == [0, 1, 0]  # fmi3OK, fmi3Warning, fmi3OK
+        assert fmu.get("y") == pytest.approx(3 * H) and refs[3].value == pytest.approx(3 * H)
+        assert any(status == 1 and "requested warning at t = 0.01" in m for status, m in fmu.messages)
+
+
+@pytest.mark.parametrize("index, kind, words", [(0, 0, "NaN"), (11, 1, "infinity"), (18, 2, "infinity")])
+def test_a_non_finite_output_after_a_step_is_an_error(synthetic_fmus, index, kind, words):
+    """The layer scans every Float64 output after each step (in blocks of 8 values, then the tail)."""
+    with fmu_instance(synthetic_fmus["Faulty"]) as fmu:
+        fmu.set("bad_at", 0.02)
+        fmu.set("bad_index", index)
+        fmu.set("bad_kind", kind)
+        fmu.initialize()
+        fmu.slave.doStep(0.0, H)
+        fmu.slave.doStep(H, H)
+        np.testing.assert_array_equal(fmu.get("ys"), np.full(19, 2 * H))
+        fmu.expect_step_error(2 * H, H, "NaN or an infinity in output 'ys'", f"(value {index})")
+        fmu.expect_step_error(3 * H, H, "Error mode", "NaN or an infinity")
+        fmu.slave.reset()  # back to the start values
+        fmu.set("bad_at", 0.02)
+        fmu.set("bad_index", index)
+        fmu.set("bad_kind", 3)  # the largest finite number is no error
+        fmu.initialize()
+        for k in range(4):
+            fmu.slave.doStep(k * H, H)
+        assert fmu.get("ys")[index] == 1.7976931348623157e308
+
+
 def test_two_instances_of_one_fmu_are_independent(synthetic_fmus):
     with fmu_instance(synthetic_fmus["Echo"], instance_name="a") as a, \
             fmu_instance(synthetic_fmus["Echo"], instance_name="b") as b:
@@ -169,14 +206,46 @@ def test_two_instances_of_one_fmu_are_independent(synthetic_fmus):
         assert b.get("integral_u") == pytest.approx(-20 * H)
 
 
+def test_two_builds_of_one_fmu_in_one_process_each_run_their_own_code(synthetic_fmus, tmp_path):
+    """Another build of an FMU (other code, other token) loaded beside the first imports its own
+    package under a name of its own, whichever build came first."""
+    import shutil
+    from pathlib import Path
+
+    from orchestration.build import FmuSpec, build_fmu_from_spec
+
+    source = tmp_path / "src" / "synthetic_fmu"
+    shutil.copytree(Path(__file__).resolve().parent / "synthetic" / "synthetic_fmu", source, symlinks=False,
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    text = (source / "fmu.py").read_text()
+    old = "v.integral_u = v.integral_u + v.last_u * dt"
+    assert old in text
+    (source / "fmu.py").write_text(text.replace(old, "v.integral_u = v.integral_u + 2.0 * v.last_u * dt"))
+    other = build_fmu_from_spec(FmuSpec("Echo", "synthetic_fmu", "fmu:ECHO", source_root=source.parent),
+                                tmp_path / "fmus")
+    for first, second in ((synthetic_fmus["Echo"], other), (other, synthetic_fmus["Echo"])):
+        with fmu_instance(first, instance_name="a") as a, fmu_instance(second, instance_name="b") as b:
+            results = []
+            for fmu in (a, b):
+                fmu.initialize()
+                fmu.set("u", 1.0)
+                fmu.slave.doStep(0.0, H)
+                results.append(fmu.get("integral_u"))
+        expected = [H, 2 * H] if first == synthetic_fmus["Echo"] else [2 * H, H]
+        assert results == pytest.approx(expected)
+
+
 # -- FMU state -------------------------------------------------------------------------------------------
 #: FMU -> (steps before the save, steps after, input, value, outputs compared)
 STATE_CASES = {
-    "Catheter": (40, 60, "tip_force", [0.6, 0.1, 0.0], ["centerline_positions", "bend_angle", "actuator_command"]),
+    "Catheter": (40, 60, "tip_force", [0.6, 0.1, 0.0],
+                 ["centerline_positions", "tip_position", "bend_angle", "actuator_command"]),
     # a probe pressed into the sac wall (the default catheter points far inside the lumen, 31 of them)
     "Contact": (40, 60, "tool_positions", np.tile([0.0235, 0.0, 0.065], 31),
-                ["tool_force", "tissue_contact_force", "passivity_energy", "contact_energy"]),
-    "Tissue": (3, 3, "contact_force", np.full(8064, 2e-4), ["surface_positions", "strain_energy", "kinetic_energy"]),
+                ["tool_force", "tip_force", "tissue_contact_force", "patch_nodes", "passivity_energy",
+                 "contact_energy"]),
+    "Tissue": (3, 3, "contact_force", np.full(8064, 2e-4),
+               ["surface_positions", "surface_velocities", "strain_energy", "kinetic_energy"]),
 }
 
 
@@ -195,10 +264,12 @@ def test_fmu_state_restores_bit_identically(name, catheter_fmu, contact_fmu, tis
     before, after = STATE_CASES[name][:2]
     with fmu_instance(fmus[name]) as fmu:
         fmu.initialize()
-        _drive(fmu, name, 0, before)
+        saved = _drive(fmu, name, 0, before)
         state = fmu.slave.getFMUState()
         first = _drive(fmu, name, before, after)
         fmu.slave.setFMUState(state)
+        for port in saved:  # the outputs at the save, before any step (the models write them in place)
+            np.testing.assert_array_equal(np.atleast_1d(fmu.get(port)), saved[port])
         again = _drive(fmu, name, before, after)
         serialized = fmu.slave.serializeFMUState(state)
         fmu.slave.freeFMUState(state)

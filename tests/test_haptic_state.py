@@ -132,3 +132,36 @@ np.save({str(tmp_path / 'there.npy')!r}, np.array([np.concatenate([f[0], f[2].ra
 """
     subprocess.run([sys.executable, "-c", script], check=True, timeout=600)
     np.testing.assert_array_equal(np.load(tmp_path / "there.npy"), np.load(tmp_path / "here.npy"))
+
+
+@pytest.mark.parametrize("policy", ["compliance", "hold"])
+def test_outputs_written_into_bound_arrays_are_the_same_bits(policy):
+    """write_outputs_into (an FMU's buffers): each step writes the same numbers into the caller's
+    arrays, bound mid-run; a deepcopy of the bound model writes into arrays of its own."""
+    scene, bound = WallScene(policy), WallScene(policy)
+    state = dict(u=scene.u, v=scene.v, acc=scene.acc, pending=None)
+    state_bound = copy.deepcopy(state)
+    scene.run(scene.model, 0, 200, state)
+    scene.run(bound.model, 0, 200, state_bound)  # the same steps: run() only uses the scene's wall
+    model = bound.model
+    tool_force, tip_force = np.full(3, np.nan), np.full(3, np.nan)
+    tissue, patch = np.full((scene.wall.n, 3), np.nan), np.zeros(model.params.max_patch_nodes, np.int32)
+    model.write_outputs_into(tool_force, tip_force, tissue, patch)
+    np.testing.assert_array_equal(tool_force, scene.model._node_force.sum(axis=0))  # the current outputs
+    np.testing.assert_array_equal(tissue, scene.model._tissue_force)
+    np.testing.assert_array_equal(patch, scene.model.patch_nodes())
+    clone = copy.deepcopy(model)
+    state_clone = copy.deepcopy(state_bound)
+    first = scene.run(scene.model, 200, 500, state)
+    again = scene.run(model, 200, 500, state_bound)
+    copied = scene.run(clone, 200, 500, state_clone)
+    assert sum(f[5] for f in first) > 100
+    for a, b, c in zip(first, again, copied):
+        _assert_same(a, b)
+        _assert_same(a, c)
+    out = model.step(0.5, 1e-3, np.zeros((1, 3)))
+    assert out.tool_force is tool_force and out.tip_force is tip_force and out.tissue_contact_force is tissue
+    np.testing.assert_array_equal(patch, model.patch_nodes())
+    assert clone.step(0.5, 1e-3, np.zeros((1, 3))).tissue_contact_force is not tissue
+    with pytest.raises(ValueError, match="tissue_contact_force"):
+        model.write_outputs_into(tool_force, tip_force, tissue[:-1], patch)

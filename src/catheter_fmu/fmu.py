@@ -73,23 +73,27 @@ class CatheterFmu:
         params.validate(v.internal_step)
         self.model = CatheterModel(params, dt=v.internal_step)
         self.model.reset(v.insertion, v.rotation)
-        self._publish()
+        self.model.write_outputs_into(v.centerline_positions, v.tip_position)
+        self._publish(self.model.outputs)
 
     def step(self, t: float, dt: float) -> None:
         v = self.values
-        self.model.step(t, dt, v.insertion, v.rotation, v.tip_force, v.external_command, v.tip_stiffness)
-        self._publish()
+        out = self.model.step(t, dt, v.insertion, v.rotation, v.tip_force, v.external_command,
+                              v.tip_stiffness)
+        # the model writes the arrays into the FMU's buffers; a model restored from an FMU state (a
+        # copy) wrote this step into its own: bind it to the buffers again (they take this step's values)
+        if out.tip_position is not v.tip_position:
+            self.model.write_outputs_into(v.centerline_positions, v.tip_position)
+        self._publish(out)
 
-    def _publish(self) -> None:
-        out, v = self.model.outputs, self.values
-        v.centerline_positions = out.centerline_positions.reshape(-1, 3)
-        v.tip_position = out.tip_position
-        v.bend_angle = float(out.bend_angle)
-        v.actuator_command = float(out.actuator_command)
-        v.effort_warning = bool(out.effort_warning)
-        v.advised_insertion_scale = float(out.advised_insertion_scale)
-        v.tip_force_magnitude = float(out.tip_force_magnitude)
-        v.total_bend = float(out.total_bend)
+    def _publish(self, out) -> None:
+        v = self.values
+        v.bend_angle = out.bend_angle
+        v.actuator_command = out.actuator_command
+        v.effort_warning = out.effort_warning
+        v.advised_insertion_scale = out.advised_insertion_scale
+        v.tip_force_magnitude = out.tip_force_magnitude
+        v.total_bend = out.total_bend
 
 
 DECLARATION = FmuDeclaration(

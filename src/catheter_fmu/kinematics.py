@@ -65,9 +65,12 @@ class CatheterKinematics:
         kernels.base_frame(*self._frame_data, insertion - self.active_length, self.frame)
         return self.frame
 
-    def fill_shape(self, insertion: float, b1: float, b2: float, frame: np.ndarray) -> np.ndarray:
-        """Fill and return ``self.positions`` from a (4, 3) frame array (``fill_base_frame``) and
-        the bend vector (b1, b2) (rad)."""
+    def fill_shape(self, insertion: float, b1: float, b2: float, frame: np.ndarray,
+                   out: np.ndarray | None = None) -> np.ndarray:
+        """Fill and return ``self.positions`` (or ``out``, a C-contiguous (n_segments + 1, 3)
+        float64 array) from a (4, 3) frame array (``fill_base_frame``) and the bend vector
+        (b1, b2) (rad)."""
+        positions = self.positions if out is None else out
         kernels.catheter_shape(
             *self._polyline,
             frame,
@@ -76,9 +79,9 @@ class CatheterKinematics:
             b2,
             self._link_fraction,
             self.segment_length,
-            self.positions,
+            positions,
         )
-        return self.positions
+        return positions
 
     @property
     def link_fraction(self) -> np.ndarray:

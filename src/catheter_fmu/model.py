@@ -268,6 +268,7 @@ class CatheterModel:
             params.advice_stop_fraction,
         )
         self.mode = params.controller_mode
+        self._bound = None  # (centerline (n_tool, 3), the same flat, tip) arrays of write_outputs_into
         self.reset()
         # load (or compile) the implicit passive bend's kernel now, not at the first 1 kHz step
         kernels.implicit_passive_bend(self.kinematics.frame, 0.0, 0.0, self._link_fraction, params.segment_length,
@@ -296,6 +297,39 @@ class CatheterModel:
             self.regulator.reset()
         self.mode = mode
 
+    def write_outputs_into(self, centerline_positions: np.ndarray, tip_position: np.ndarray) -> None:
+        """Let every step write the centerline (n_tool x 3 values) and the tip position (3) into
+        these float64 arrays (writable, C-contiguous: e.g. an FMU's output buffers, which then
+        need no copy) instead of new ones. They take the current outputs now; ``outputs`` refers
+        to them, overwritten by the next step. A copy of the model (deepcopy, pickle) writes into
+        arrays of its own again."""
+        for name, array, size in (("centerline_positions", centerline_positions, 3 * self.n_tool),
+                                  ("tip_position", tip_position, 3)):
+            if not (isinstance(array, np.ndarray) and array.dtype == np.float64 and array.size == size
+                    and array.flags.c_contiguous and array.flags.writeable):
+                raise CatheterParameterError(f"{name} goes into a writable C-contiguous float64 array of {size} "
+                                             f"values (got {getattr(array, 'dtype', type(array).__name__)} "
+                                             f"{getattr(array, 'shape', '')})")
+        flat = centerline_positions.reshape(-1)
+        flat[...] = self.outputs.centerline_positions
+        tip = tip_position if tip_position.ndim == 1 else tip_position.reshape(-1)  # the caller's array itself
+        tip[...] = self.outputs.tip_position
+        self._bound = (flat.reshape(self.n_tool, 3), flat, tip)
+        self.outputs = replace(self.outputs, centerline_positions=flat, tip_position=tip)
+
+    def __getstate__(self) -> dict:
+        """A copy (deepcopy, pickle) keeps the outputs in arrays of its own (write_outputs_into)."""
+        state = self.__dict__.copy()
+        if state.get("_bound") is not None:
+            state["_bound"] = None
+            state["outputs"] = replace(self.outputs, centerline_positions=self.outputs.centerline_positions.copy(),
+                                       tip_position=self.outputs.tip_position.copy())
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.__dict__.setdefault("_bound", None)
+
     def get_state(self) -> dict:
         """Everything ``step`` changes, for FMU get/set state (rollback)."""
         return {
@@ -307,7 +341,7 @@ class CatheterModel:
             "warning": self.monitor.warning,
             "passive_bend": self.passive_bend.copy(),
             "mode": self.mode,
-            "outputs": self.outputs,
+            "outputs": self.outputs if self._bound is None else self.__getstate__()["outputs"],
         }
 
     def set_state(self, state: dict) -> None:
@@ -320,6 +354,11 @@ class CatheterModel:
         self.passive_bend = state["passive_bend"].copy()
         self.mode = state["mode"]
         self.outputs = state["outputs"]
+        if self._bound is not None:  # into the bound arrays, as a step would
+            _, flat, tip = self._bound
+            flat[...] = self.outputs.centerline_positions
+            tip[...] = self.outputs.tip_position
+            self.outputs = replace(self.outputs, centerline_positions=flat, tip_position=tip)
 
     # ----------------------------------------------------------------------------------
 
@@ -430,11 +469,18 @@ class CatheterModel:
             # Beyond a half turn the small-deflection passive model means nothing (forces of
             # several N on the tip); fold no further than a U-turn.
             b1, b2 = b1 * MAX_TOTAL_BEND / total, b2 * MAX_TOTAL_BEND / total
-        pos = self.kinematics.fill_shape(insertion, b1, b2, frame)
+        bound = self._bound
+        if bound is None:
+            pos = self.kinematics.fill_shape(insertion, b1, b2, frame)
+            centerline, tip = pos.reshape(-1).copy(), pos[-1].copy()
+        else:  # write_outputs_into
+            pos, centerline, tip = bound
+            self.kinematics.fill_shape(insertion, b1, b2, frame, pos)
+            tip[:] = pos[-1]
         warning, scale = self.monitor.update(force_magnitude)
         self.outputs = CatheterOutputs(
-            centerline_positions=pos.reshape(-1).copy(),
-            tip_position=pos[-1].copy(),
+            centerline_positions=centerline,
+            tip_position=tip,
             bend_angle=angle,
             actuator_command=command,
             effort_warning=warning,

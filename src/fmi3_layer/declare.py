@@ -17,6 +17,12 @@ The connecting class (the "adapter") is plain Python:
 
 Its attributes (other than the ``values``) are the model state that fmi3GetFMUState saves, so
 they must survive ``copy.deepcopy`` and ``pickle``.
+
+The ``values`` arrays are views of the FMU's own memory (what ``fmi3Get*`` copies out), so a
+model may compute an output straight into one instead of returning an array the adapter copies
+(``model.write_outputs_into(values.x, ...)``; the 1 kHz FMUs do, see their ``fmu.py``). A
+restored FMU state holds a copy of the model, which writes into arrays of its own: the adapter
+notices (the array the step returned is not ``values.x``) and binds it again.
 """
 from __future__ import annotations
 

@@ -5,8 +5,9 @@ owns the values and the model. Every variable's values live in a numpy array all
 registered with the C layer (pointer and length), so ``fmi3Get*``/``fmi3Set*`` copy memory in C
 and never enter Python, while the model reads and writes the same memory through
 :class:`Values`. The C layer enters Python only for the calls that change the model:
-initialization, ``fmi3DoStep`` (once per call, whatever the number of internal steps),
-configuration, FMU state, reset and free.
+initialization, ``fmi3DoStep`` (once per call, whatever the number of internal steps; a method
+bound once, called without argument objects: time, step and the result travel through a small
+array, the step exchange), configuration, FMU state, reset and free.
 
 It also writes the modelDescription.xml from an FMU's declaration (:func:`model_description`), so
 the XML, the table and the start values come from one place (``<package>/fmu.py``).
@@ -47,6 +48,9 @@ DTYPES = {"Float64": np.float64, "Int32": np.int32, "UInt64": np.uint64, "Boolea
 
 #: No array of an FMU may exceed this (a structural parameter of 10**9 is a typing error).
 MAX_ARRAY_BYTES = 1 << 30
+
+#: The step exchange with fmi3DoStep: t, h, internal steps (in); status, internal steps completed (out).
+IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED = range(5)
 
 _REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
                              ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p)
@@ -173,67 +177,36 @@ class Values:
     """The FMU's variables as attributes: scalars as Python numbers, arrays as numpy views of the
     buffers the C layer reads and writes, strings as ``str``. Assigning writes into the buffer.
 
-    The 1 kHz path goes through here several times per step, so each name maps straight to its
-    buffer (rebound whenever the runtime reallocates buffers)."""
+    The 1 kHz path goes through here several times per step, so each variable is a property of
+    a class made for the instance's current buffers (remade whenever the runtime reallocates
+    them): reading or writing a scalar costs about 0.1 us, half of a ``__getattribute__`` lookup.
+    Arrays are views of the FMU's own memory, so a model may also write an output in place
+    (``values.x[...] = ...``, or its kernels writing into ``values.x``)."""
 
-    __slots__ = ("_instance", "_arrays", "_scalars")
+    __slots__ = ("_instance",)
 
     def __init__(self, instance: "RuntimeInstance"):
         object.__setattr__(self, "_instance", instance)
-        object.__setattr__(self, "_arrays", {})
-        object.__setattr__(self, "_scalars", {})
 
     def _rebind(self) -> None:
         instance = self._instance
-        arrays, scalars = {}, {}
+        counts, references = instance.set_count_view, instance.references
+
+        def set_count(values, name: str) -> int:
+            return counts[references[name]]
+        set_count.__doc__ = Values.set_count.__doc__
+        namespace = {"__slots__": (), "set_count": set_count}
         for vr, v in enumerate(instance.variables):
-            if v.type == "String":
-                continue
-            if v.shape:
-                arrays[v.name] = instance.views[vr]
-            else:  # a memoryview reads and writes a Python number several times faster than numpy
-                scalars[v.name] = memoryview(instance.buffers[vr])
-        object.__setattr__(self, "_arrays", arrays)
-        object.__setattr__(self, "_scalars", scalars)
+            namespace[v.name] = _value_property(instance, vr, v)
+        object.__setattr__(self, "__class__", type(f"{instance.model_name}Values", (Values,), namespace))
 
-    def __getattribute__(self, name):
-        # __getattribute__, not __getattr__: a failed normal lookup first raises AttributeError,
-        # which alone costs about a microsecond per access
-        scalar = _scalars_of(self).get(name)
-        if scalar is not None:
-            return scalar[0]
-        array = _arrays_of(self).get(name)
-        if array is not None:
-            return array
-        try:
-            return object.__getattribute__(self, name)
-        except AttributeError:
-            pass
-        instance = _instance_of(self)
-        vr = instance.references.get(name)
-        if vr is None:
-            raise AttributeError(f"{instance.model_name} has no variable {name!r}") from None
-        return instance.read_string(vr)
-
-    def __setattr__(self, name, value):
-        scalar = _scalars_of(self).get(name)
-        if scalar is not None:
-            scalar[0] = value
-            return
-        array = _arrays_of(self).get(name)
-        if array is not None:
-            array[...] = value
-            return
-        instance = _instance_of(self)
-        vr = instance.references.get(name)
-        if vr is None:
-            raise AttributeError(f"{instance.model_name} has no variable {name!r}")
-        instance.write_string(vr, value)
+    def __getattr__(self, name):  # only for names that are no variable
+        raise AttributeError(f"{_instance_of(self).model_name} has no variable {name!r}")
 
     def set_count(self, name: str) -> int:
         """How often the importer has set ``name`` (e.g. to tell whether an optional input is used)."""
-        instance = self._instance
-        return int(instance.set_counts[instance.references[name]])
+        instance = _instance_of(self)
+        return instance.set_count_view[instance.references[name]]
 
     def __deepcopy__(self, memo):  # the values are saved with the buffers, not with the model
         return self
@@ -242,9 +215,35 @@ class Values:
         raise TypeError("Values are not part of the model state")
 
 
-_scalars_of = Values._scalars.__get__
-_arrays_of = Values._arrays.__get__
 _instance_of = Values._instance.__get__
+
+
+def _value_property(instance: "RuntimeInstance", vr: int, variable) -> property:
+    """Read and write access to one variable's buffer (or the C layer's string)."""
+    if variable.type == "String":
+        def get_string(values):
+            return instance.read_string(vr)
+
+        def set_string(values, value):
+            instance.write_string(vr, value)
+        return property(get_string, set_string, doc=variable.description)
+    if variable.shape:
+        array = instance.views[vr]
+
+        def get_array(values):
+            return array
+
+        def set_array(values, value):
+            array[...] = value
+        return property(get_array, set_array, doc=variable.description)
+    scalar = memoryview(instance.buffers[vr])  # reads and writes a Python number several times faster than numpy
+
+    def get_scalar(values):
+        return scalar[0]
+
+    def set_scalar(values, value):
+        scalar[0] = value
+    return property(get_scalar, set_scalar, doc=variable.description)
 
 
 class _Snapshot:
@@ -274,7 +273,7 @@ class _Router(logging.Handler):
             status = ERROR if record.levelno >= logging.ERROR else WARNING
             instance.log(status, f"{record.name}: {record.getMessage()}")
             if status == WARNING:
-                instance.warnings += 1
+                instance.warned()
         except Exception:  # logging must never fail a call
             pass
 
@@ -289,15 +288,20 @@ class RuntimeInstance:
         self.variables = declaration.all_variables()
         self.references = {v.name: vr for vr, v in enumerate(self.variables)}
         self._c = ctypes.c_void_p(c_instance)
-        self._register, counters, self._log, self._get_string, self._set_string = callbacks
+        self._register, counters, step_io, self._log, self._get_string, self._set_string = callbacks
         self._router = router
+        self._current = router.current  # this thread's running instance, for the package's log records
         self.buffers: list[np.ndarray | None] = [None] * len(self.variables)
         self.views: list[np.ndarray | None] = [None] * len(self.variables)
         self.values = Values(self)
         self.set_counts = np.zeros(len(self.variables), dtype=np.uint64)
+        self.set_count_view = memoryview(self.set_counts)  # plain ints, read by Values.set_count
         counters(self._c, self.set_counts.ctypes.data, len(self.variables))
+        self._step_io = np.zeros(5)
+        self._io = memoryview(self._step_io)
+        if step_io(self._c, self._step_io.ctypes.data, self._step_io.size) != 0:
+            raise MemoryError("the FMI layer did not take the step exchange")
         self.adapter = None
-        self.warnings = 0
         self._allocate(reset=True)
 
     # -- buffers ------------------------------------------------------------------------------------
@@ -309,6 +313,7 @@ class RuntimeInstance:
 
     def _allocate(self, reset: bool) -> None:
         """(Re)allocate the buffers whose size changed (all of them when ``reset``) and register them."""
+        changed = reset
         for vr, v in enumerate(self.variables):
             if v.type == "String":
                 if reset or self.buffers[vr] is None:
@@ -329,6 +334,7 @@ class RuntimeInstance:
                     f"{v.name} would need {nbytes / 2**30:.1f} GiB ({' x '.join(map(str, shape))} values): check "
                     f"the structural parameters {', '.join(d for d in v.shape if isinstance(d, str))}")
             buffer = np.zeros(size, dtype=dtype)
+            changed = True
             start = _resolved_start(v, shape) if v.causality != "independent" else None
             if start is not None:
                 buffer[:] = np.ravel(np.asarray(start)).astype(dtype)
@@ -338,8 +344,9 @@ class RuntimeInstance:
                                     VARIABILITY_CODES[v.variability], buffer.ctypes.data, size, v.name.encode())
             if status != 0:
                 raise MemoryError(f"the FMI layer could not register {v.name}")
-        self.values._rebind()
-        self._time = self.buffers[self.references["time"]]  # written every step
+        if changed:
+            self.values._rebind()
+            self._time = memoryview(self.buffers[self.references["time"]])  # written every step
 
     # Strings live in the C layer (numbers in the buffers, reached through Values).
     def read_string(self, vr: int) -> str:
@@ -385,24 +392,37 @@ class RuntimeInstance:
         finally:
             self._router.current.instance = None
 
-    def do_step(self, t: float, h: float, substeps: int) -> tuple[int, int]:
-        """Advance ``substeps`` internal steps of ``h / substeps``; (status, steps completed)."""
-        adapter = self.adapter
-        dt = h / substeps
-        self.warnings = 0
-        self._router.current.instance = self
+    def do_step(self) -> None:
+        """One fmi3DoStep: from the step exchange's t, ``substeps`` internal steps of ``h / substeps``.
+        The exchange arrives with status OK and all steps completed; a failure writes ERROR and the
+        steps it completed, a warning logged during the step WARNING (``warned``)."""
+        io = self._io
+        t, h, substeps = io[IO_TIME], io[IO_STEP], io[IO_SUBSTEPS]
+        current = self._current
+        current.instance = self
         done = 0
         try:
-            for k in range(substeps):
-                adapter.step(t + k * dt if k else t, dt)
-                done += 1
+            if substeps == 1.0:  # h / 1 is h: the same numbers as the loop
+                self.adapter.step(t, h)
+            else:
+                adapter, substeps = self.adapter, int(substeps)
+                dt = h / substeps
+                for k in range(substeps):
+                    adapter.step(t + k * dt if k else t, dt)
+                    done += 1
         except BaseException as exc:
-            self._fail(f"fmi3DoStep(t = {t:.9g}, h = {h:.9g}) at t = {t + done * dt:.9g}", exc)
-            return ERROR, done
+            io[IO_COMPLETED] = done
+            io[IO_STATUS] = ERROR
+            self._fail(f"fmi3DoStep(t = {t:.9g}, h = {h:.9g}) at t = {t + done * (h / substeps):.9g}", exc)
+            return
         finally:
-            self._router.current.instance = None
+            current.instance = None
         self._time[0] = t + h
-        return (WARNING if self.warnings else OK), done
+
+    def warned(self) -> None:
+        """A warning was logged during this call: a step reports fmi3Warning."""
+        if self._io[IO_STATUS] < WARNING:
+            self._io[IO_STATUS] = WARNING
 
     def terminate(self) -> None:
         terminate = getattr(self.adapter, "terminate", None)
@@ -471,10 +491,9 @@ class RuntimeInstance:
 
 # ---- instantiation ------------------------------------------------------------------------------------
 _routers: dict[str, _Router] = {}
-_tokens: dict[str, str] = {}  # stable module name -> token of the build loaded under it
 
 
-def _load_package(resources: Path, unique: str, package: str):
+def _load_package(resources: Path, unique: str, package: str, token: str):
     """Import the FMU's package from its resources under ``unique`` (never a copy the host has)."""
     module = sys.modules.get(unique)
     if module is not None:
@@ -487,6 +506,7 @@ def _load_package(resources: Path, unique: str, package: str):
     spec = importlib.util.spec_from_file_location(unique, package_dir / "__init__.py",
                                                   submodule_search_locations=[str(package_dir)])
     module = importlib.util.module_from_spec(spec)
+    module.__fmu_instantiation_token__ = token  # the build loaded under this name (see instantiate)
     sys.modules[unique] = module
     try:
         spec.loader.exec_module(module)
@@ -503,19 +523,20 @@ def _load_package(resources: Path, unique: str, package: str):
 
 
 def instantiate(resources: str, model_identifier: str, token: str, instance_name: str, c_instance: int,
-                register: int, counters: int, log: int, get_string: int, set_string: int):
+                register: int, counters: int, step_io: int, log: int, get_string: int, set_string: int):
     resources = Path(resources)
     meta = json.loads((resources / "fmu.json").read_text())
     if token != meta["instantiation_token"]:
         raise ValueError(f"instantiationToken {token!r} does not match this FMU's {meta['instantiation_token']!r}: "
                          "the modelDescription.xml and the resources are from different builds")
     # A stable name (states serialized by one process load in another, numba's cache refers to
-    # it); another build of the same FMU in this process gets a name of its own.
+    # it); another build of the same FMU in this process gets a name of its own. Each build has
+    # its own copy of this module, so the build under a name is told by the package's token.
     unique = f"{model_identifier}_{meta['package']}"
-    loaded = _tokens.setdefault(unique, token)
-    if loaded != token:
+    loaded = sys.modules.get(unique)
+    if loaded is not None and getattr(loaded, "__fmu_instantiation_token__", None) != token:
         unique = f"{unique}_{''.join(c for c in token if c.isalnum())[:16]}"
-    package = _load_package(resources, unique, meta["package"])
+    package = _load_package(resources, unique, meta["package"], token)
     module_name, _, attribute = meta["declaration"].partition(":")
     declaration = getattr(importlib.import_module(f"{unique}.{module_name}"), attribute)
     router = _routers.get(unique)
@@ -525,6 +546,6 @@ def instantiate(resources: str, model_identifier: str, token: str, instance_name
         package_logger.addHandler(router)
         # the importer hears the messages through the FMI log; not a second time from its root logger
         package_logger.propagate = False
-    callbacks = (_REGISTER(register), _COUNTERS(counters), _LOG(log), _GET_STRING(get_string),
-                 _SET_STRING(set_string))
+    callbacks = (_REGISTER(register), _COUNTERS(counters), _COUNTERS(step_io), _LOG(log),
+                 _GET_STRING(get_string), _SET_STRING(set_string))
     return RuntimeInstance(declaration, instance_name, c_instance, callbacks, router)

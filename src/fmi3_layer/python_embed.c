@@ -35,8 +35,7 @@ static int bind_all(void *handle, char *reason, size_t reason_size) {
     BIND(PyImport_ImportModule);
     BIND(PyObject_CallMethod);
     BIND(PyObject_CallFunction);
-    BIND(PyLong_AsLong);
-    BIND(PyArg_ParseTuple);
+    BIND(PyObject_CallNoArgs);
     BIND(PyFloat_AsDouble);
     BIND(PyErr_Occurred);
     BIND(PyErr_Fetch);

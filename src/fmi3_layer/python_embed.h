@@ -32,8 +32,7 @@ typedef struct {
     PyObject *(*PyImport_ImportModule)(const char *);
     PyObject *(*PyObject_CallMethod)(PyObject *, const char *, const char *, ...);
     PyObject *(*PyObject_CallFunction)(PyObject *, const char *, ...);
-    long (*PyLong_AsLong)(PyObject *);
-    int (*PyArg_ParseTuple)(PyObject *, const char *, ...);
+    PyObject *(*PyObject_CallNoArgs)(PyObject *);
     double (*PyFloat_AsDouble)(PyObject *);
     PyObject *(*PyErr_Occurred)(void);
     void (*PyErr_Fetch)(PyObject **, PyObject **, PyObject **);

@@ -110,7 +110,7 @@ class ContactFmu:
                                   params)
         self._take_frame(float(v.time))
         self.frame = int(v.tissue_frame)
-        v.patch_nodes = self.model.patch_nodes()
+        self.model.write_outputs_into(v.tool_force, v.tip_force, v.tissue_contact_force, v.patch_nodes)
 
     def _take_frame(self, t: float) -> None:
         v = self.values
@@ -122,22 +122,22 @@ class ContactFmu:
             self.model.set_tissue_frame(t, v.tissue_positions, v.tissue_velocities)
 
     def step(self, t: float, dt: float) -> None:
-        v = self.values
+        v, model = self.values, self.model
         frame = v.tissue_frame
         if frame != self.frame:
             self._take_frame(t)
             self.frame = frame
         velocities = v.tool_velocities if v.set_count("tool_velocities") else None
-        out = self.model.step(t, dt, v.tool_positions, velocities)
-        v.tool_force = out.tool_force
-        v.tip_force = out.tip_force
+        out = model.step(t, dt, v.tool_positions, velocities)
+        # the model writes the arrays into the FMU's buffers; a model restored from an FMU state (a
+        # copy) wrote this step into its own: bind it to the buffers again (they take this step's values)
+        if out.tissue_contact_force is not v.tissue_contact_force:
+            model.write_outputs_into(v.tool_force, v.tip_force, v.tissue_contact_force, v.patch_nodes)
         v.tip_stiffness = out.tip_stiffness
-        v.tissue_contact_force = out.tissue_contact_force
         v.penetration_depth = out.penetration_depth
-        v.contact_count = int(out.contact_count)
+        v.contact_count = out.contact_count
         v.contact_energy = out.contact_energy
         v.passivity_energy = out.passivity_energy
-        v.patch_nodes = self.model.patch_nodes()
 
 
 DECLARATION = FmuDeclaration(

@@ -223,6 +223,9 @@ def _warm_up(interpolation) -> None:
                 params = ContactParameters(local_model=policy, detection=detection, interpolation=interpolation,
                                            passivity_controller=passivity, tool=tool, margin=0.003)
                 model = ContactModel(tri, 4, len(path[0]), params)
+                if policy == "compliance" and detection == "continuous":  # outputs into an FMU's buffers
+                    model.write_outputs_into(np.zeros(3), np.zeros(3), np.zeros((4, 3)),
+                                             np.zeros(params.max_patch_nodes, np.int32))
                 model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
                 for k in range(3):
                     model.step(k * 1e-3, 1e-3, path[k])
@@ -297,6 +300,8 @@ class ContactModel:
         self._node_force = np.zeros((self.n_tool, 3))
         self._tip_stiffness = np.zeros((3, 3))
         self._tissue_force = np.zeros((self.n_surface, 3))
+        self._outputs = None            # (tool force, tip force, patch nodes) arrays of write_outputs_into
+        self._no_patch = np.zeros(0, np.int64)
         self._no_record = np.zeros((0, 3))
         self._pos0 = np.zeros((0, 3))
         self._box_lo = np.zeros((tri.shape[0], 3))
@@ -487,8 +492,13 @@ class ContactModel:
         node_force = self._passivity(tool1, tool_vel, float(dt))
         self._warn_if_active(float(energy), t)
         self._tool_prev = tool1.copy()
+        if self._outputs is None:
+            tool_force, tip_force = node_force.sum(axis=0), node_force[-1].copy()
+        else:  # write_outputs_into
+            self._publish(node_force)
+            tool_force, tip_force = self._outputs[0], self._outputs[1]
         return ContactOutputs(
-            tool_force=node_force.sum(axis=0), tip_force=node_force[-1].copy(), tip_stiffness=self._tip_stiffness,
+            tool_force=tool_force, tip_force=tip_force, tip_stiffness=self._tip_stiffness,
             tissue_contact_force=self._tissue_force, node_forces=self._node_force,
             penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
             passivity_energy=self._renderer.energy)
@@ -632,7 +642,7 @@ class ContactModel:
 
     # ------------------------------------------------------------------ state (FMU rollback)
     _STATELESS = ("tree", "triangles", "params", "n_surface", "n_tool", "radius", "n_segments", "_law",
-                  "_no_record")
+                  "_no_record", "_no_patch")
 
     def get_state(self) -> dict:
         """A deep copy of everything that changes at run time (frames, local model, compliance,
@@ -658,6 +668,41 @@ class ContactModel:
         if self.compliance is None:
             return np.full(self.params.max_patch_nodes, -1, np.int64)
         return self.compliance.patch.copy()
+
+    def write_outputs_into(self, tool_force: np.ndarray, tip_force: np.ndarray, tissue_contact_force: np.ndarray,
+                           patch_nodes: np.ndarray) -> None:
+        """Let every step write its outputs into these arrays (e.g. an FMU's output buffers, which
+        then need no copy) instead of new ones: ``tool_force``, ``tip_force`` (3,) and
+        ``tissue_contact_force`` (n_surface, 3) float64, ``patch_nodes`` (max_patch_nodes,) of an
+        integer type; writable and C-contiguous. They take the current values now (the last
+        step's outputs); ``step`` returns them, overwritten by the next step. The same numbers
+        as without: the tool force is summed point after point, as ``node_forces.sum(axis=0)``
+        does. A copy of the model (deepcopy, pickle, ``set_state``) writes into arrays of its own
+        again."""
+        arrays = dict(tool_force=(tool_force, (3,)), tip_force=(tip_force, (3,)),
+                      tissue_contact_force=(tissue_contact_force, (self.n_surface, 3)),
+                      patch_nodes=(patch_nodes, (self.params.max_patch_nodes,)))
+        for name, (array, shape) in arrays.items():
+            kind = "i" if name == "patch_nodes" else "f"
+            if not (isinstance(array, np.ndarray) and array.shape == shape and array.dtype.kind == kind
+                    and (kind == "i" or array.dtype == np.float64) and array.flags.c_contiguous
+                    and array.flags.writeable):
+                raise ValueError(f"{name} goes into a writable C-contiguous {shape} "
+                                 f"{'integer' if kind == 'i' else 'float64'} array (got "
+                                 f"{getattr(array, 'dtype', type(array).__name__)} {getattr(array, 'shape', '')})")
+        if tissue_contact_force is not self._tissue_force:
+            tissue_contact_force[...] = self._tissue_force
+            self._tissue_force = tissue_contact_force
+        if self.compliance is None:
+            patch_nodes.fill(-1)
+        self._outputs = (tool_force, tip_force, patch_nodes)
+        self._publish(self._node_force)
+
+    def _publish(self, node_force):
+        """The bound outputs of this step: tool and tip force, and the patch."""
+        tool_force, tip_force, patch_nodes = self._outputs
+        patch = self.compliance.patch if self.compliance is not None else self._no_patch
+        rendering_kernels.publish(node_force, tool_force, tip_force, patch, patch_nodes)
 
     @property
     def patch_count(self) -> int:

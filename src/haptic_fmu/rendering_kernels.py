@@ -431,3 +431,19 @@ def compliance_response(contact_face, contact_w, contact_n, contact_depth, conta
     out[2] = energy
     out[3] = iterations
     out[4] = _largest_node_norm(u)
+
+
+@njit(cache=True)
+def publish(node_force, tool_force, tip_force, patch, patch_out):
+    """A step's outputs into the caller's arrays: the tool force summed point after point (the
+    order of ``node_force.sum(axis=0)``, so the same bits), the tip force (last point), and the
+    patch ids (``patch_out`` of any integer type; nothing when ``patch`` is empty)."""
+    n = node_force.shape[0]
+    for d in range(3):
+        total = node_force[0, d]
+        for i in range(1, n):
+            total += node_force[i, d]
+        tool_force[d] = total
+        tip_force[d] = node_force[n - 1, d]
+    for i in range(patch.shape[0]):
+        patch_out[i] = patch[i]

@@ -137,7 +137,7 @@ class TissueFmu:
         v = self.values
         nodes = np.array(v.patch_nodes)
         valid = np.flatnonzero(nodes >= 0)
-        w = np.zeros((nodes.size * 3, nodes.size * 3))
+        block = None
         if valid.size:
             ids = nodes[valid]
             if ids.max() >= self.model.n_surface or np.unique(ids).size != ids.size:
@@ -145,15 +145,17 @@ class TissueFmu:
                                  f"or -1 (got {ids.tolist()})")
             block = self.model.compliance(ids, dt, tolerance=v.compliance_tolerance)
             block = 0.5 * (block + block.T)
+        w = v.compliance.reshape(nodes.size * 3, nodes.size * 3)  # the FMU's buffer
+        w[...] = 0.0
+        if block is not None:
             dofs = (3 * valid[:, None] + np.arange(3)).ravel()
             w[np.ix_(dofs, dofs)] = block
-        v.compliance = w.reshape(v.compliance.shape)
         v.compliance_nodes = nodes
 
     def _publish(self) -> None:
         model, v = self.model, self.values
-        v.surface_positions = model.surface_positions()
-        v.surface_velocities = model.surface_velocities()
+        model.surface_positions(out=v.surface_positions)  # straight into the FMU's buffers
+        model.surface_velocities(out=v.surface_velocities)
         v.strain_energy = model.strain_energy
         v.kinetic_energy = model.kinetic_energy
         v.max_strain = model.max_strain

@@ -5,11 +5,13 @@ Before the first step an FMU's time is the start time of ``fmi3EnterInitializati
 """
 from __future__ import annotations
 
+import logging
 import os
 
 from ._fmi import FmuDeclaration, input_port, output, parameter, structural
 
 DEFAULT_STEP = 0.01
+logger = logging.getLogger(__name__)
 
 
 def polynomial(coefficients, t: float) -> float:
@@ -114,12 +116,19 @@ ECHO = FmuDeclaration(
 )
 
 
+#: What Faulty writes into ``ys[bad_index]`` from ``bad_at`` on, by ``bad_kind``.
+BAD_VALUES = (float("nan"), float("inf"), float("-inf"), 1.7976931348623157e308)  # the last one is finite
+N_YS = 19  # more than a multiple of the layer's 8-value blocks: the scan's tail is tested too
+
+
 class Faulty:
-    """Steps normally until ``error_at`` (returns fmi3Error) or ``crash_at`` (aborts the process)."""
+    """Steps normally until ``error_at`` (returns fmi3Error) or ``crash_at`` (aborts the process),
+    or writes a non-finite value into an output from ``bad_at`` on (the layer must refuse it)."""
 
     def __init__(self, values):
         self.values = values
         values.y = values.time
+        values.ys = values.time
 
     def step(self, t: float, dt: float) -> None:
         v = self.values
@@ -129,7 +138,13 @@ class Faulty:
             raise ValueError(f"requested error at t = {t!r}")
         if v.interrupt_at >= 0.0 and t >= v.interrupt_at:
             raise KeyboardInterrupt  # as a Ctrl-C arriving while the FMU computes
+        if v.warn_at >= 0.0 and abs(t - v.warn_at) < 0.5 * dt:
+            logger.warning("requested warning at t = %r", t)  # the step returns fmi3Warning
         v.y = t + dt
+        ys = v.ys
+        ys[...] = t + dt
+        if v.bad_at >= 0.0 and t >= v.bad_at:
+            ys[v.bad_index] = BAD_VALUES[v.bad_kind]
 
 
 FAULTY = FmuDeclaration(
@@ -140,6 +155,12 @@ FAULTY = FmuDeclaration(
         parameter("crash_at", -1.0, "steps starting at t >= crash_at abort the process (negative: never)", "s"),
         parameter("interrupt_at", -1.0, "steps starting at t >= interrupt_at raise KeyboardInterrupt (negative: never)",
                   "s"),
+        parameter("warn_at", -1.0, "the step starting at t = warn_at logs a warning (negative: never)", "s"),
+        parameter("bad_at", -1.0, "steps starting at t >= bad_at write BAD_VALUES[bad_kind] into ys[bad_index] "
+                  "(negative: never)", "s"),
+        parameter("bad_index", 0, "which value of ys goes bad"),
+        parameter("bad_kind", 0, "0 NaN, 1 +infinity, 2 -infinity, 3 the largest finite number"),
         output("y", "current time", "s"),
+        output("ys", "current time, N_YS times", "s", shape=(N_YS,)),
     ),
 )
