@@ -288,7 +288,12 @@ class InProcessFmu:
             raise
 
     def finish_step(self) -> dict[str, np.ndarray]:
-        self._pull()
+        try:
+            self.instance.pull()
+        except AttributeError:  # no instance (yet, or any more)
+            if self.instance is None:
+                self._require_instance("finish_step")
+            raise
         return self._output_views  # views of the output buffer: valid until the next step
 
     def wait_handle(self) -> None:
