@@ -237,6 +237,11 @@ class PiecewiseLinearSource(Source):
                                        unit=units.get(out), shape=() if scalar else (width,),
                                        start=values[0, 0] if scalar else values[0].tolist())
         self._values = np.ascontiguousarray(np.concatenate(columns, axis=1))  # (n_times, total width)
+        # evaluate() works on plain floats (a few values per tick: numpy's per-call cost would dominate);
+        # the same IEEE operations, so the same values as the array formula in _row
+        self._rows = self._values.tolist()
+        self._hold = interpolation == "hold"
+        self._slice_list = list(self._slices.items())
 
     def _row(self, t: float) -> np.ndarray:
         i = bisect.bisect_right(self._t, t)  # times[i-1] <= t < times[i]
@@ -250,8 +255,20 @@ class PiecewiseLinearSource(Source):
         return (1.0 - w) * self._values[i - 1] + w * self._values[i]
 
     def evaluate(self, t: float) -> dict[str, np.ndarray]:
-        row = self._row(_check_finite_t(t))
-        return {out: row[s].copy() for out, s in self._slices.items()}
+        if not (type(t) is float and math.isfinite(t)):
+            t = _check_finite_t(t)
+        rows = self._rows
+        i = bisect.bisect_right(self._t, t)  # times[i-1] <= t < times[i]
+        if i == 0:
+            row = rows[0]
+        elif i == len(rows) or self._hold:
+            row = rows[i - 1]
+        else:
+            t0, t1 = self._t[i - 1], self._t[i]
+            w = (t - t0) / (t1 - t0)
+            v = 1.0 - w
+            row = [v * a + w * b for a, b in zip(rows[i - 1], rows[i])]
+        return {out: np.array(row[s]) for out, s in self._slice_list}
 
 
 def _read_csv(problems, path: Path, columns: dict, time_column: str, key="path"):

@@ -510,3 +510,17 @@ def test_block_options_documented_and_match_constructor_defaults():
     assert dict((o[0], o[1]) for o in block_options("piecewise_linear"))["times"] is REQUIRED
     with pytest.raises(KeyError, match="kinds are"):
         block_options("sine")
+
+
+def test_piecewise_linear_evaluate_on_floats_equals_the_array_formula_bitwise():
+    """evaluate() computes on plain floats for speed; the values must be the array formula's, bit for bit."""
+    from orchestration.blocks import PiecewiseLinearSource
+
+    rng = np.random.default_rng(7)
+    times = np.cumsum(rng.uniform(0.01, 0.3, 12))
+    source = PiecewiseLinearSource("s", times.tolist(), {"a": rng.normal(size=12).tolist(),
+                                                         "b": rng.normal(size=(12, 3)).tolist()})
+    for t in np.concatenate([rng.uniform(times[0] - 0.1, times[-1] + 0.1, 2000), times]):
+        row = source._row(float(t))
+        values = source.evaluate(float(t))
+        assert values["a"].tobytes() == row[0:1].tobytes() and values["b"].tobytes() == row[1:4].tobytes()
