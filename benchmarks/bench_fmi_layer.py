@@ -11,8 +11,8 @@ outputs (centerline 93 values, tip position, bend angle, command, advice, force 
 bend: 101 values) and the Boolean warning; the direct loop calls ``CatheterModel.step`` and copies
 the same outputs. Both push the catheter in while a tip force swings.
 
-The FMUs are called through their raw C functions on preallocated numpy buffers (as the
-in-process host does, ctypes included); FMU and direct steps alternate in blocks in one process
+The FMUs are called through their raw C functions (FMPy's ctypes bindings, the importer's own
+cost included) on preallocated numpy buffers; FMU and direct steps alternate in blocks in one process
 so that machine noise hits both alike, and each reports the median of its steps. The FMI cost is
 the difference of the medians; the last step's outputs must agree to the bit.
 
