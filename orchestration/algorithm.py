@@ -91,6 +91,7 @@ class Route:
     need_offset: int = 0                    # tau - t: 0 for jacobi, the consumer's step for gauss-seidel
     last_key: object = None
     last_value: np.ndarray | None = None
+    seen: int = -1                          # history.count when a keyed transition last took its newest sample
 
 
 @dataclass(eq=False)
@@ -300,9 +301,14 @@ class MultirateAlgorithm:
             else:
                 if initial and route.producer.name not in done:
                     continue  # producer not initialized yet (a loop): the start value stands
-                if not route.history.ticks:
+                history = route.history
+                if history.count == route.seen:
+                    continue  # hold gave the newest sample and nothing arrived since: the same value
+                if not history.ticks:
                     continue
                 value, key = route.transition.value(tau)
+                if key is not None and key == history.ticks[-1]:
+                    route.seen = history.count
             if key is not None:
                 if key == route.last_key:
                     continue

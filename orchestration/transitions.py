@@ -25,18 +25,20 @@ import numpy as np
 class SampleHistory:
     """The samples ``(tick, value)`` of one producer port, oldest first, pruned as consumers advance."""
 
-    __slots__ = ("step", "ticks", "values")
+    __slots__ = ("step", "ticks", "values", "count")
 
     def __init__(self, step: int):
         self.step = int(step)
         self.ticks: deque[int] = deque()
         self.values: deque[np.ndarray] = deque()
+        self.count = 0  # samples appended so far (a consumer can tell that nothing new arrived)
 
     def append(self, tick: int, value: np.ndarray) -> None:
         if self.ticks and tick <= self.ticks[-1]:
             raise ValueError(f"samples must arrive in time order (tick {tick} after {self.ticks[-1]})")
         self.ticks.append(int(tick))
         self.values.append(value)
+        self.count += 1
 
     def prune(self, keep_from: int) -> None:
         """Drop samples older than ``keep_from``, always keeping the latest two."""
