@@ -313,12 +313,12 @@ class MultirateAlgorithm:
                 if key == route.last_key:
                     continue
                 route.last_key = key
-            else:
-                last = route.last_value
-                # bitwise: much cheaper than an elementwise compare on the few values of a source
-                if last is not None and (value is last or value.tobytes() == last.tobytes()):
-                    continue
-                route.last_value = value
+            # A new sample with the same bits as the last one set (a force that stays zero, a patch
+            # that stays the same) is not set again. Bitwise: much cheaper than an elementwise compare.
+            last = route.last_value
+            if last is not None and (value is last or value.tobytes() == last.tobytes()):
+                continue
+            route.last_value = value
             values[route.port] = value
         return values
 
