@@ -78,7 +78,7 @@ def _cmd_validate(args) -> int:
 
 def _cmd_run(args) -> int:
     from .build import BuildError, ensure_fmus_built
-    from .master import run_scene
+    from .master import Simulation
 
     try:
         ensure_fmus_built(args.quiet)
@@ -94,16 +94,17 @@ def _cmd_run(args) -> int:
     if scene is None:
         return EXIT_USAGE
     out = Path(args.out) if args.out else Path("results") / scene.name
-    if not args.quiet:
-        print(f"running {scene.name} ({scene.description or scene.path}) for "
-              f"{float(args.duration if args.duration else scene.duration):g} s, "
-              f"{args.hosting or scene.hosting} ...", flush=True)
     try:
-        summary, text = run_scene(scene, out, hosting=args.hosting, realtime=args.realtime or None,
-                                  progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
+        simulation = Simulation(scene, out, hosting=args.hosting, realtime=args.realtime or None,
+                                progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
     except ValueError as exc:  # a --duration that does not fit the steps
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if not args.quiet:
+        print(f"running {scene.name} ({scene.description or scene.path}) for {float(simulation.duration):g} s, "
+              f"{simulation.hosting} ...", flush=True)
+    summary = simulation.run()
+    text = simulation.summary_text
     if not args.quiet or summary["status"] not in ("completed", "terminated"):
         print(text)
     if summary["status"] not in ("completed", "terminated"):
