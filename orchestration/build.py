@@ -277,11 +277,11 @@ def _numba_cache_root() -> Path:
 
 
 def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
-    """Compile the FMUs' kernels into the numba cache by running the default scene briefly.
+    """Compile the FMUs' kernels into the numba cache by running the default scene once.
 
     The FMUs import their packages under names of their own and cache compiled kernels by file
-    content (``numba_cache``), so a short run in a fresh interpreter compiles exactly what later
-    runs load. Done once per set of FMUs (a stamp in the cache folder); returns True if it ran.
+    content (``numba_cache``), so a run in a fresh interpreter compiles exactly what later runs
+    load. Done once per set of FMUs (a stamp in the cache folder); returns True if it ran.
     """
     fmus = sorted(Path(dest).glob("*.fmu"))
     if not fmus:
@@ -293,7 +293,7 @@ def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
         return False
     if not quiet:
         print("compiling the FMUs' numba kernels (once per build) ...", flush=True)
-    code = ("import sys, tempfile; from orchestration.build import _warm_run; sys.exit(_warm_run())")
+    code = "import sys; from orchestration.build import _warm_run; sys.exit(_warm_run())"
     result = subprocess.run([sys.executable, "-c", code], cwd=str(REPO_ROOT), capture_output=True, text=True)
     if result.returncode != 0:  # a warm-up failure only costs time later: say so, do not stop
         logger.warning("warming the numba cache failed (runs will compile their kernels): %s",
