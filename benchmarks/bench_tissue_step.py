@@ -14,7 +14,10 @@ Printed:
      (add_forces), tangent products, factorisation (rest factor, Woodbury columns and
      corrections, tangent refactorisations), solves (factor applications), other;
   3. the tangent strategies and solver backends measured choice by choice (default wall, 5 N);
-  4. the compliance block for p = 4..16 contact nodes, relative to one step.
+  4. the compliance block for p = 4..16 contact nodes, relative to one step;
+  5. the tangent-mode factorisation alternatives at the default wall's 5 N state (factor and solve
+     times, GMRES iterations on the exact non-symmetric system), and the single-vector rest solve
+     at every size (what bounds the 0.5 N steps).
 
 Run: python benchmarks/bench_tissue_step.py [--steps 10] [--quick]
 """
@@ -32,7 +35,7 @@ from collections import defaultdict
 import numpy as np
 
 from tissue_fmu import TissueModel, TissueParameters, aaa_mesh, kernels, load_mesh, save_mesh
-from tissue_fmu.factorization import TangentFactorization, cholmod_available
+from tissue_fmu.factorization import TangentFactorization, _CholeskyFactor, cholmod_available, sparse_lu
 from tissue_fmu.integrators import BackwardEuler, FactorizedPreconditioner
 from tissue_fmu.precompute import tensors_to_csr
 
@@ -142,7 +145,8 @@ def run(model: TissueModel, load: float, steps: int, warmup: int = 3, split: boo
     if split:
         ff = model.force_field
         timer.wrap(ff, "add_forces", "force")
-        for name in ("tangent_matvec", "consistent_tangent_matvec", "system_matvec", "damping_matvec"):
+        for name in ("tangent_matvec", "consistent_tangent_matvec", "system_matvec", "damping_matvec",
+                     "add_tangent_correction"):
             if hasattr(ff, name):
                 timer.wrap(ff, name, "tangent")
         model.integrator.preconditioner = _TimedPreconditioner(pc, timer)
@@ -181,8 +185,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=10, help="timed steps per case (after 3 warm-up steps)")
     parser.add_argument("--quick", action="store_true", help="skip the largest wall and the former 64x80x2 run")
+    parser.add_argument("--only", type=int, default=0, help="run only this section (5: the tangent alternatives)")
     args = parser.parse_args()
     steps = args.steps
+    if args.only == 5:
+        sizes = [(32, 40, 2), (48, 60, 2), (64, 80, 2)] + ([] if args.quick else [(80, 100, 2)])
+        tangent_alternatives(aaa_mesh(), None, sizes)
+        return
     print(f"frame budget {BUDGET_MS:.1f} ms; rest factor backend: "
           f"{'CHOLMOD (cholespy)' if cholmod_available() else 'SuperLU (cholespy not installed)'}")
 
@@ -291,6 +300,109 @@ def main() -> None:
             print(f"  {load:3.1f} N, p = {p:2d} ({3 * p:2d} columns, mode {fresh.integrator.preconditioner.mode:7s}): "
                   f"first {first:7.1f} ms = {first / r['median']:5.2f} x the step, again {again:6.2f} ms = "
                   f"{again / r['median']:5.3f} x the step ({r['median']:.1f} ms)")
+
+    # 5. tangent-mode alternatives and the rest solve
+    tangent_alternatives(default, big, sizes)
+
+
+def _best_ms(function, repeat: int = 3):
+    best, result = float("inf"), None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        result = function()
+        best = min(best, time.perf_counter() - t0)
+    return 1000.0 * best, result
+
+
+def _gmres_iterations(a, b, solve, tolerance: float) -> int:
+    """Right-preconditioned GMRES iterations (scipy, restart 50) for A x = b to ``tolerance``."""
+    from scipy.sparse.linalg import LinearOperator, gmres
+
+    n = a.shape[0]
+    count = [0]
+
+    def callback(_):
+        count[0] += 1
+
+    preconditioner = LinearOperator((n, n), matvec=solve)
+    x, info = gmres(a, b, M=preconditioner, rtol=tolerance, restart=50, maxiter=20, callback=callback,
+                    callback_type="pr_norm")
+    return count[0] if info == 0 else -1
+
+
+def tangent_alternatives(default, big, sizes) -> None:
+    """Section 5: what a tangent refactorisation costs with each backend, and what it buys."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    print("\n5. tangent-mode alternatives, default wall, ETMM, 5 N, state after 6 steps (tangent mode):"
+          "\n   factor = best of 2 (CHOLMOD: analysis + numeric, cholespy exposes no numeric-only refactor);"
+          "\n   GMRES = iterations on the exact non-symmetric step matrix to 1e-6 with that preconditioner")
+    model = TissueModel(default, TissueParameters(law="etmm", viscosity=VISCOSITY))
+    model.set_contact_force(patch_force(model, 5.0))
+    pc = model.integrator.preconditioner
+    stale = None
+    for k in range(6):
+        model.step(k * FRAME, FRAME)
+        if k == 2:
+            stale = pc._tangent_data.copy() if pc._tangent_data is not None else None
+    h, ff = FRAME, pc.force_field
+    ids, blocks = ff.tangent_blocks()
+    data = pc._rest_data.copy()
+    kernels.scatter_element_blocks(ff.active_tets, ids, ids.shape[0], blocks, h * h, pc._indptr, pc._offsets, data)
+    free_data = data[pc._keep]
+    nf = pc._free_dofs.size
+    a = sp.csr_matrix((free_data, pc._f_indices, pc._f_indptr), shape=(nf, nf))
+    sym = ((a + a.T) * 0.5).tocsr()
+    sym.sort_indices()
+    b = np.random.default_rng(0).standard_normal(nf)
+    asym = abs(a - a.T).max() / abs(a).max()
+    print(f"   {nf} free dofs, {ids.shape[0]} super-threshold tets; max |A - A^T| / max |A| = {asym:.3f}")
+    print(f"   {'preconditioner':58s} {'factor':>8s} {'solve':>7s} {'GMRES':>6s}")
+
+    def row(label, factor_ms, solve, note=""):
+        solve_ms, _ = _best_ms(lambda: solve(b), 5)
+        its = _gmres_iterations(a, b, solve, model.params.cg_tolerance)
+        factor = f"{factor_ms:8.1f}" if factor_ms is not None else f"{'-':>8s}"
+        print(f"   {label:58s} {factor} {solve_ms:7.2f} {its:6d}  {note}")
+
+    ms, lu = _best_ms(lambda: sparse_lu(pc._free_matrix(free_data)), 2)
+    row("SuperLU of the exact tangent, MMD(A+A^T) (chosen)", ms, lambda r: lu.solve(r, trans="T"),
+        f"nnz(L+U) {lu.L.nnz + lu.U.nnz}")
+    inverse = np.argsort(lu.perm_c)
+    permuted = pc._free_matrix(free_data)[inverse][:, inverse].tocsc()
+    ms, lu_p = _best_ms(lambda: splu(permuted, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                                     options={"SymmetricMode": True}), 2)
+
+    def solve_permuted(r, lu_p=lu_p, inverse=inverse):
+        x = np.empty_like(r)
+        x[inverse] = lu_p.solve(r[inverse], trans="T")
+        return x
+
+    row("same, ordering of an earlier factorisation reused", ms, solve_permuted)
+    if stale is not None:
+        lu_s = sparse_lu(pc._free_matrix(stale))
+        row("SuperLU of the tangent 3 steps earlier (what reuse gives)", None, lambda r: lu_s.solve(r, trans="T"))
+    if cholmod_available():
+        ms, ch = _best_ms(lambda: _CholeskyFactor(sym.indptr, sym.indices, sym.data), 2)
+        row("CHOLMOD of the symmetric part (A + A^T) / 2", ms, ch.solve)
+        rest = sp.csr_matrix((pc._rest_data[pc._keep], pc._f_indices, pc._f_indptr), shape=(nf, nf))
+        ms, cr = _best_ms(lambda: _CholeskyFactor(rest.indptr, rest.indices, rest.data), 2)
+        row("CHOLMOD of the rest matrix (no refactorisation)", ms, cr.solve)
+
+    print("\n   single-vector rest solve (the whole 0.5 N step is one), CHOLMOD / SuperLU, ms:")
+    for nc, na, nr in sizes:
+        mesh = aaa_mesh(n_circumferential=nc, n_axial=na, n_radial=nr)
+        model = TissueModel(mesh, TissueParameters(law="linear", viscosity=VISCOSITY))
+        model.step(0.0, FRAME)
+        pc = model.integrator.preconditioner
+        rhs = np.random.default_rng(0).standard_normal(pc._free_dofs.size)
+        rest = pc._rest_data[pc._keep]
+        lu = sparse_lu(pc._free_matrix(rest))
+        cholmod_ms = _best_ms(lambda: pc._lu_rest.solve(rhs), 5)[0] if pc.backend == "cholmod" else float("nan")
+        superlu_ms = _best_ms(lambda: lu.solve(rhs, trans="T"), 5)[0]
+        print(f"   {nc}x{na}x{nr}: {pc._free_dofs.size} free dofs, CHOLMOD {cholmod_ms:6.2f}, SuperLU {superlu_ms:6.2f} "
+              f"(nnz(L) {lu.L.nnz}, {16e-6 * lu.L.nnz / superlu_ms:.1f} GB/s reading L twice)")
 
 
 if __name__ == "__main__":

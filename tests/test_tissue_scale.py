@@ -255,6 +255,21 @@ def test_max_strain_kernel_equals_the_per_element_maximum_bit_for_bit():
     assert ff.max_strain(np.zeros_like(u)) == 0.0
 
 
+def test_max_strain_skip_bound_keeps_the_maximum_bit_for_bit():
+    """The kernel skips elements by ||H|| + ||H||^2 / 2 >= ||E||: small, large, random and rotated
+    displacement fields still give exactly the per-element maximum."""
+    mesh, ff, u = strained_etmm_field()
+    rng = np.random.default_rng(3)
+    points = ff._points
+    angle = 0.3  # a rigid rotation: large H, E = 0 up to round-off (the bound skips nothing)
+    c, s = np.cos(angle), np.sin(angle)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    fields = [1e-6 * u, 1e-3 * u, 10.0 * u, 1e-4 * rng.standard_normal(u.shape), points @ rotation.T - points,
+              points @ rotation.T - points + 1e-3 * u]
+    for field in fields:
+        assert ff.max_strain(field) == ff.element_max_strain(field).max()
+
+
 # --------------------------------------------------------------------------------------
 # vertex order of a rest tetrahedron
 # --------------------------------------------------------------------------------------

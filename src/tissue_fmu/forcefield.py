@@ -176,14 +176,23 @@ class TensorMassForceField:
     def _screened(self) -> bool:
         return bool(getattr(self._law, "screened", False))
 
-    def add_forces(self, u, v, out) -> None:
-        """out += elastic(u) + viscous(v); u = x - x0, v velocity, all (n, 3) float64."""
+    def add_forces(self, u, v, out, rest_v_scale: float = 0.0) -> None:
+        """out += elastic(u) + viscous(v); u = x - x0, v velocity, all (n, 3) float64.
+
+        ``rest_v_scale`` (with v, laws that ``splits_rest_stiffness`` only): also out -=
+        rest_v_scale K_0 v, fused into the rest-stiffness pass (the implicit step's -h K_t v is this
+        plus :meth:`add_tangent_correction`)."""
         n = self.n_nodes
         _check_node_array("u", u, n)
         _check_node_array("out", out, n)
         if v is not None:
             _check_node_array("v", v, n)
-        self._law.add_forces(u, v, out)
+        if rest_v_scale != 0.0:
+            if v is None or not self._law.splits_rest_stiffness:
+                raise ForceFieldError("rest_v_scale needs v and a law that splits off the rest stiffness")
+            self._law.add_forces(u, v, out, rest_v_scale)
+        else:
+            self._law.add_forces(u, v, out)
         np.copyto(self._u_last, u)
         if self._damping is not None and v is not None:
             c = self._damping
@@ -226,6 +235,16 @@ class TensorMassForceField:
         if self._damping is not None and c_scale != 0.0:
             c = self._damping
             kernels.tensor_mass_matvec(c.vertex, c.edges, c.edge_tensors, du, c_scale, out)
+
+    @property
+    def splits_rest_stiffness(self) -> bool:
+        """True when K_t = K_0 + a correction (linear, ETMM): add_forces(rest_v_scale=...) and
+        add_tangent_correction are available."""
+        return bool(self._law.splits_rest_stiffness)
+
+    def add_tangent_correction(self, du, scale: float, out, consistent: bool = False) -> None:
+        """out += scale (K_t - K_0) du at the last add_forces state (consistent or secant tangent)."""
+        self._law.add_tangent_correction(du, scale, out, consistent)
 
     def tangent_blocks(self):
         """(active element ids (k,), blocks (k, 4, 4, 3, 3)): the consistent tangent minus the rest

@@ -47,16 +47,25 @@ class MaterialLaw:
     def nonlinear_fraction(self) -> float:
         return 0.0
 
-    def add_forces(self, u, v, out) -> None:
+    def add_forces(self, u, v, out, rest_v_scale: float = 0.0) -> None:
+        """``rest_v_scale``: also out -= rest_v_scale K_0 v, in the same pass (the implicit step's
+        right-hand side folds its -h K_0 v in here; laws with ``splits_rest_stiffness`` only)."""
         ff = self.ff
         k = ff.stiffness
-        if ff._tau > 0.0 and v is not None:
+        scale = self._v_scale(v, rest_v_scale)
+        if scale != 0.0:
             w = ff._work
-            np.multiply(v, ff._tau, out=w)
+            np.multiply(v, scale, out=w)
             w += u
             kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, w, -1.0, out)
         else:
             kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, u, -1.0, out)
+
+    def _v_scale(self, v, rest_v_scale: float) -> float:
+        """Coefficient of -K_0 v in the force: the uniform viscosity tau plus ``rest_v_scale``."""
+        if v is None:
+            return 0.0
+        return (self.ff._tau if self.ff._tau > 0.0 else 0.0) + rest_v_scale
 
     def tangent_matvec(self, du, out) -> None:
         k = self.ff.stiffness
@@ -91,11 +100,11 @@ class MaterialLaw:
     def stiffening_margin(self, strain: float) -> float:
         return 1.0
 
-    def _uniform_damping(self, v, out) -> None:
-        ff = self.ff
-        if ff._tau > 0.0 and v is not None:
-            k = ff.stiffness
-            kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, v, -ff._tau, out)
+    def _uniform_damping(self, v, out, rest_v_scale: float = 0.0) -> None:
+        scale = self._v_scale(v, rest_v_scale)
+        if scale != 0.0:
+            k = self.ff.stiffness
+            kernels.tensor_mass_matvec(k.vertex, k.edges, k.edge_tensors, v, -scale, out)
 
 
 class LinearLaw(MaterialLaw):
@@ -160,7 +169,7 @@ class ETMMLaw(_StiffeningLaw):
     def nonlinear_fraction(self) -> float:
         return self._nonlinear_count / self._phi.shape[0]
 
-    def add_forces(self, u, v, out) -> None:
+    def add_forces(self, u, v, out, rest_v_scale: float = 0.0) -> None:
         ff = self.ff
         k = ff.stiffness
         self._phi[self._nonlinear_ids[: self._nonlinear_count]] = 0.0  # forget the last state
@@ -180,7 +189,7 @@ class ETMMLaw(_StiffeningLaw):
             ff.nonlinear_strain_threshold, ff._beta_over_alpha, self._phi, self._nonlinear_ids, out)
         ff.screened_fraction = examined.shape[0] / self._phi.shape[0]
         self._tangent_stale = True
-        self._uniform_damping(v, out)
+        self._uniform_damping(v, out, rest_v_scale)
 
     def tangent_matvec(self, du, out) -> None:
         super().tangent_matvec(du, out)
