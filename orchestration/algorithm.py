@@ -82,7 +82,6 @@ class Route:
 
     spec: ConnectionSpec
     port: str
-    jacobi: bool
     parameter: bool = False                 # set once, at initialization
     producer: "Component | None" = None     # stepped producer
     source: object = None                   # continuous source (evaluate(t))
@@ -91,6 +90,7 @@ class Route:
     need_offset: int = 0                    # tau - t: 0 for jacobi, the consumer's step for gauss-seidel
     last_key: object = None
     last_value: np.ndarray | None = None
+    last_bytes: bytes | None = None         # last_value.tobytes(), kept so each step converts one array
     seen: int = -1                          # history.count when a keyed transition last took its newest sample
 
 
@@ -99,8 +99,7 @@ class Component:
     """A stepped component during a run: its host, its grid in ticks, its routes and listeners."""
 
     spec: ComponentSpec
-    index: int
-    rank: int
+    rank: int                               # its place in the initialization order and in ``ordered``
     step: int                               # ticks
     end: int                                # last tick it reaches
     host: object = None
@@ -112,7 +111,7 @@ class Component:
     started_at: float = 0.0
     routes: list[Route] = field(default_factory=list)
     observed: list[str] = field(default_factory=list)
-    histories: list[tuple[str, tr.SampleHistory]] = field(default_factory=list)
+    histories: dict[str, list[tr.SampleHistory]] = field(default_factory=dict)  # per port: one copy for all
     consumers: list[tuple["Component", Route]] = field(default_factory=list)
     listeners: list[Callable] = field(default_factory=list)     # observers' stepped(comp, tick, outputs)
     pre_step: list[Callable] = field(default_factory=list)      # observers' before_step(comp, tick)
@@ -169,6 +168,7 @@ class MultirateAlgorithm:
         self.terminated: RunTerminated | None = None
         self._source_cache: dict[str, tuple[int, dict]] = {}
         self._schedule: dict = {}
+        self._cache_until = -1  # set by run(): decisions before this tick are remembered
 
     # -- time ------------------------------------------------------------------------------------
     def seconds(self, tick: int) -> float:
@@ -188,7 +188,7 @@ class MultirateAlgorithm:
         for rank, name in enumerate(initialization_order(scene, [s.name for s in stepped])):
             spec = scene.components[name]
             step = int(spec.step * self.base)
-            self.components[name] = Component(spec=spec, index=rank, rank=rank, step=step,
+            self.components[name] = Component(spec=spec, rank=rank, step=step,
                                               end=-(-self.end // step) * step)
         self.ordered = list(self.components.values())
         for spec in scene.components.values():
@@ -198,7 +198,7 @@ class MultirateAlgorithm:
         for conn in scene.connections:
             target = self.components[conn.target]
             is_parameter = target.spec.ports[conn.target_port].causality != "input"
-            route = Route(spec=conn, port=conn.target_port, jacobi=conn.ordering == "jacobi", parameter=is_parameter)
+            route = Route(spec=conn, port=conn.target_port, parameter=is_parameter)
             if conn.source in self.sources:
                 route.source = self.sources[conn.source]
             else:
@@ -207,10 +207,10 @@ class MultirateAlgorithm:
                 if not is_parameter:
                     route.history = tr.SampleHistory(producer.step)
                     route.transition = tr.REGISTRY[conn.transition or tr.DEFAULT](route.history, target.step)
-                    producer.histories.append((conn.source_port, route.history))
+                    producer.histories.setdefault(conn.source_port, []).append(route.history)
                     producer.consumers.append((target, route))
                     _add(producer.observed, conn.source_port)
-            route.need_offset = 0 if route.jacobi else target.step
+            route.need_offset = 0 if conn.ordering == "jacobi" else target.step
             target.routes.append(route)
         for observer in self.observers:
             for comp in self.ordered:
@@ -316,9 +316,12 @@ class MultirateAlgorithm:
             # A new sample with the same bits as the last one set (a force that stays zero, a patch
             # that stays the same) is not set again. Bitwise: much cheaper than an elementwise compare.
             last = route.last_value
-            if last is not None and (value is last or value.tobytes() == last.tobytes()):
+            if last is not None and value is last:
                 continue
-            route.last_value = value
+            data = value.tobytes()
+            if data == route.last_bytes:
+                continue
+            route.last_value, route.last_bytes = value, data
             values[route.port] = value
         return values
 
@@ -334,8 +337,10 @@ class MultirateAlgorithm:
     def _store(self, comp: Component, tick: int, outputs: dict[str, np.ndarray]) -> None:
         """Keep what consumers will read (copies: a host's outputs are valid until its next step)."""
         comp.outputs = outputs
-        for port, history in comp.histories:
-            history.append(tick, outputs[port].copy())
+        for port, histories in comp.histories.items():
+            sample = outputs[port].copy()  # shared by every consumer's history: nobody writes to it
+            for history in histories:
+                history.append(tick, sample)
         for listener in comp.listeners:
             listener(comp, tick, outputs)
         # Drop samples no consumer can still ask for.
@@ -438,10 +443,10 @@ class MultirateAlgorithm:
             if best is None or (c.time, c.rank) < (best.time, best.rank):
                 best = c
         if best is not None:
-            return True, best.index
+            return True, best.rank
         running = [c for c in pending if c.running]
         if running:
-            return False, min(running, key=lambda c: (c.time, c.rank)).index
+            return False, min(running, key=lambda c: (c.time, c.rank)).rank
         stuck = ", ".join(f"{c.name} at t = {self.seconds(c.time):.6g} s" for c in pending)
         raise OrchestrationError(f"no component can step ({stuck}); this is a bug in the scene checks")
 
