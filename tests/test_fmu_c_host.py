@@ -60,7 +60,7 @@ def _outputs(stdout: str) -> dict[str, np.ndarray]:
     values = {}
     for line in stdout.splitlines():
         name, *numbers = line.split()
-        if name not in ("state", "misuse"):  # the replay and misuse verdicts
+        if name not in ("state", "misuse", "run"):  # the replay, misuse and run verdicts
             values[name] = np.array([float(x) for x in numbers])
     return values
 
@@ -86,7 +86,7 @@ def fmus(tissue_fmu, contact_fmu, catheter_fmu):
 def test_runs_in_a_c_host_with_the_numbers_of_fmpy(host, fmus, name, tmp_path):
     result = _run(host, _arguments(name, fmus[name], tmp_path / "run"))
     assert result.returncode == 0, result.stderr[-2000:]
-    assert "logStatusError" not in result.stderr
+    assert "run completed" in result.stdout and "logStatusError" not in result.stderr
     c_values = _outputs(result.stdout)
     for port, expected in _fmpy_outputs(name, fmus[name]).items():
         np.testing.assert_array_equal(c_values[port], expected, err_msg=f"{name}.{port}")
@@ -118,9 +118,25 @@ def test_thirty_fresh_c_host_processes_exit_normally(host, fmus, name, tmp_path)
     jobs = [_arguments(name, fmus[name], tmp_path / f"run{k}") for k in range(RUNS)]
     with ThreadPoolExecutor(max_workers=2) as pool:
         results = list(pool.map(lambda args: _run(host, args), jobs))
-    failures = [(k, r.returncode, r.stderr[-300:]) for k, r in enumerate(results) if r.returncode != 0]
+    failures = [(k, r.returncode, r.stderr[-300:]) for k, r in enumerate(results)
+                if r.returncode != 0 or "run completed" not in r.stdout]
     assert failures == []
     first = _outputs(results[0].stdout)
     for r in results[1:]:  # and the same numbers every time
         for port, values in _outputs(r.stdout).items():
             np.testing.assert_array_equal(values, first[port])
+
+
+@pytest.mark.parametrize("kind, at", [("error_at", 0.05), ("bad_at", 0.03)])
+def test_a_step_that_fails_ends_the_run_and_the_host_still_exits_normally(host, synthetic_fmus, kind, at, tmp_path):
+    """A model failure (an exception; a NaN output) in fmi3DoStep: fmi3Error with the reason, the
+    instance in the Error state, and the importer's clean-up (fmi3FreeInstance, unload) works: the
+    C host reports the status and exits with 0, in every one of several fresh processes."""
+    args = [str(synthetic_fmus["Faulty"]), str(tmp_path / "run"), "100", "0.01", "--param", f"{kind}:1={at!r}"]
+    for k in range(5):
+        args[1] = str(tmp_path / f"run{k}")
+        result = _run(host, args)
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert "run ended: fmi3DoStep(" in result.stdout and "returned 3" in result.stdout
+        assert "run completed" not in result.stdout
+        assert "logStatusError" in result.stderr

@@ -8,6 +8,7 @@
  * usage: fmu_host FMU WORKDIR STEPS STEP_SIZE [options]
  *   --input NAME:COUNT=VALUE   set COUNT Float64 values of input NAME to VALUE*(1 + k/STEPS) at step k
  *   --output NAME:COUNT        print the COUNT Float64 values of NAME after the last step (%.17g)
+ *   --param NAME:COUNT=VALUE   set COUNT Float64 values of parameter NAME before initialization
  *   --state                    save, serialize, restore and replay the second half
  *   --misuse                   also make calls that must be refused (fmi3DoStep and fmi3Terminate before
  *                              initialization, a NaN input halfway) and check they return fmi3Error
@@ -160,7 +161,10 @@ static void logger(fmi3InstanceEnvironment env, fmi3Status status, fmi3String ca
 }
 
 #define LOAD(name) name##TYPE *name = (name##TYPE *)dlsym(library, #name); if (!name) die("missing symbol", #name)
-#define CHECK(call) do { fmi3Status s_ = (call); if (s_ > fmi3Warning) { fprintf(stderr, "fmu_host: %s returned %d\n", #call, s_); exit(3); } } while (0)
+/* An error status ends the run as an importer must: no further calls but fmi3FreeInstance (none
+ * after fmi3Fatal), the library unloaded, and a normal exit that reports the status on stdout. */
+#define CHECK(call) do { fmi3Status s_ = (call); if (s_ > fmi3Warning) { \
+    printf("run ended: %s returned %d\n", #call, s_); ended = s_; goto end; } } while (0)
 
 int main(int argc, char **argv) {
     if (argc < 5) die("usage: fmu_host FMU WORKDIR STEPS STEP_SIZE [--input N:C=V] [--output N:C] [--state]", NULL);
@@ -168,16 +172,19 @@ int main(int argc, char **argv) {
     long steps = strtol(argv[3], NULL, 10);
     double h = strtod(argv[4], NULL);
     Port inputs[MAX_PORTS], outputs[MAX_PORTS];
-    int n_inputs = 0, n_outputs = 0, with_state = 0, misuse = 0;
+    int n_inputs = 0, n_outputs = 0, n_params = 0, with_state = 0, misuse = 0;
+    Port params[MAX_PORTS];
+    fmi3Status ended = fmi3OK;
     for (int i = 5; i < argc; i++) {
         if (strcmp(argv[i], "--state") == 0) {
             with_state = 1;
         } else if (strcmp(argv[i], "--misuse") == 0) {
             misuse = 1;
-        } else if (i + 1 < argc && (strcmp(argv[i], "--input") == 0 || strcmp(argv[i], "--output") == 0)) {
-            int is_input = argv[i][2] == 'i';
-            Port *port = is_input ? &inputs[n_inputs++] : &outputs[n_outputs++];
-            if (n_inputs > MAX_PORTS || n_outputs > MAX_PORTS) die("too many ports", NULL);
+        } else if (i + 1 < argc && (strcmp(argv[i], "--input") == 0 || strcmp(argv[i], "--output") == 0
+                                    || strcmp(argv[i], "--param") == 0)) {
+            Port *port = argv[i][2] == 'i' ? &inputs[n_inputs++]
+                       : argv[i][2] == 'o' ? &outputs[n_outputs++] : &params[n_params++];
+            if (n_inputs > MAX_PORTS || n_outputs > MAX_PORTS || n_params > MAX_PORTS) die("too many ports", NULL);
             memset(port, 0, sizeof *port);
             const char *spec = argv[++i];
             size_t length = strcspn(spec, ":");
@@ -199,6 +206,7 @@ int main(int argc, char **argv) {
     attribute(description, "<CoSimulation", "modelIdentifier", identifier, sizeof identifier);
     for (int i = 0; i < n_inputs; i++) inputs[i].vr = value_reference(description, inputs[i].name);
     for (int i = 0; i < n_outputs; i++) outputs[i].vr = value_reference(description, outputs[i].name);
+    for (int i = 0; i < n_params; i++) params[i].vr = value_reference(description, params[i].name);
 
     snprintf(path, sizeof path, "%s/binaries/x86_64-linux/%s.so", work, identifier);
     void *library = dlopen(path, RTLD_NOW | RTLD_LOCAL);
@@ -224,6 +232,12 @@ int main(int argc, char **argv) {
                                                         fmi3False, NULL, 0, NULL, logger, NULL);
     if (!instance) die("fmi3InstantiateCoSimulation failed", NULL);
     int refused = 0; /* errors this host provoked on purpose, and the FMU refused */
+    fmi3FMUState halfway = NULL;
+    double *first_run = NULL;
+    for (int i = 0; i < n_params; i++) {
+        for (size_t j = 0; j < params[i].count; j++) params[i].buffer[j] = params[i].value;
+        CHECK(fmi3SetFloat64(instance, &params[i].vr, 1, params[i].buffer, params[i].count));
+    }
     if (misuse) {
         fmi3Boolean event = 0, terminate = 0, early = 0;
         fmi3Float64 last = 0.0;
@@ -233,9 +247,7 @@ int main(int argc, char **argv) {
     CHECK(fmi3EnterInitializationMode(instance, fmi3False, 0.0, 0.0, fmi3False, 0.0));
     CHECK(fmi3ExitInitializationMode(instance));
 
-    fmi3FMUState halfway = NULL;
     long half = steps / 2;
-    double *first_run = NULL;
     size_t total_out = 0;
     for (int i = 0; i < n_outputs; i++) total_out += outputs[i].count;
     for (int pass = 0; pass < (with_state ? 2 : 1); pass++) {
@@ -291,13 +303,17 @@ int main(int argc, char **argv) {
             free(values);
         }
     }
-    free(first_run);
     CHECK(fmi3Terminate(instance));
-    fmi3FreeInstance(instance);
+    printf("run completed\n");
+end:
+    free(first_run);
+    if (ended != fmi3Fatal) fmi3FreeInstance(instance);
     dlclose(library);
     free(description);
     for (int i = 0; i < n_inputs; i++) free(inputs[i].buffer);
     for (int i = 0; i < n_outputs; i++) free(outputs[i].buffer);
+    for (int i = 0; i < n_params; i++) free(params[i].buffer);
+    if (ended != fmi3OK) return 0; /* reported above; the errors the logger counted belong to it */
     int expected = misuse ? (n_inputs > 0 ? 3 : 2) : 0;
     if (misuse) printf("misuse refused: %d of %d\n", refused, expected);
     /* the logger counted the provoked errors too: only unexpected ones fail the run */
