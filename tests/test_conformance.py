@@ -367,14 +367,9 @@ def test_scene_validation_of_third_party_fmus(fmus, tmp_path):
     assert len(problems) == len(expected), problems
 
 
-def test_the_project_fmus_keep_their_internal_step_rule(tmp_path):
+def test_the_project_fmus_keep_their_internal_step_rule(contact_fmu, tmp_path):
     """FMUs with an internal_step parameter: the scene's step is their rate (unchanged)."""
-    from orchestration.build import build_fmu, fmu_is_stale
-    from orchestration.scene import FMU_DIR
-
-    if fmu_is_stale("Contact"):
-        build_fmu("Contact")
-    contact = FMU_DIR / "Contact.fmu"
+    contact = contact_fmu
     data = {"fmu": {"contact": {"path": str(contact), "step": 0.002, "parameters": {"internal_step": 0.001}}}}
     with pytest.raises(SceneError, match="internal_step = 0.001 differs from step = 0.002"):
         scene_from_dict(data, tmp_path)
