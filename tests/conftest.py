@@ -4,8 +4,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from orchestration.build import build_fmu
+
+# Fuzzers (tests/test_fuzz_*.py) run a bounded number of cases in CI and many more on demand:
+#     pytest tests/test_fuzz_*.py --hypothesis-profile=long
+# Each fuzz case is a fresh process or a whole run, hence no deadline and few cases in CI.
+settings.register_profile("ci", max_examples=25, deadline=None, derandomize=True,
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+settings.register_profile("long", max_examples=1000, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+settings.load_profile("ci")
 
 REPO = Path(__file__).resolve().parent.parent
 CCD_DATA = REPO.parent / "shared" / "data" / "ccd-sample-queries"
