@@ -105,9 +105,27 @@ def _cmd_run(args) -> int:
 
 
 def _run_command(args, stop) -> int:
+    from .outfolder import OutputFolderError, ResultFolder
+
+    # An --out that cannot be used is refused first, before a build or a scene load can take a
+    # minute (the default folder needs the scene's name: it is checked once the scene is loaded).
+    folder = ResultFolder(args.out) if args.out else None
+    try:
+        if folder is not None:
+            folder.acquire()
+        return _prepare_and_run(args, stop, folder)
+    except OutputFolderError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    finally:
+        if folder is not None:
+            folder.release()
+
+
+def _prepare_and_run(args, stop, folder) -> int:
     from .build import BuildError, ensure_fmus_built
     from .master import Simulation
-    from .outfolder import OutputFolderError, ResultFolder
+    from .outfolder import ResultFolder
 
     try:
         ensure_fmus_built(args.quiet)
@@ -125,26 +143,27 @@ def _run_command(args, stop) -> int:
     scene = _load(args.scene, overrides)
     if scene is None:
         return EXIT_USAGE
-    out = Path(args.out) if args.out else Path("results") / scene.name
-    folder = ResultFolder(out)
+    if folder is None:
+        folder = ResultFolder(Path("results") / scene.name)
+        folder.acquire()
+        try:
+            return _simulate(args, stop, scene, folder, Simulation)
+        finally:
+            folder.release()
+    return _simulate(args, stop, scene, folder, Simulation)
+
+
+def _simulate(args, stop, scene, folder, Simulation) -> int:
     try:
-        simulation = Simulation(scene, out, hosting=args.hosting, realtime=args.realtime or None,
+        simulation = Simulation(scene, folder.out, hosting=args.hosting, realtime=args.realtime or None,
                                 progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu, folder=folder)
     except ValueError as exc:  # a --duration that does not fit the steps
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    try:
-        folder.acquire()
-    except OutputFolderError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        if not args.quiet:
-            print(f"running {scene.name} ({scene.description or scene.path}) for {float(simulation.duration):g} s, "
-                  f"{simulation.hosting} ...", flush=True)
-        summary = simulation.run()
-    finally:
-        folder.release()
+    if not args.quiet:
+        print(f"running {scene.name} ({scene.description or scene.path}) for {float(simulation.duration):g} s, "
+              f"{simulation.hosting} ...", flush=True)
+    summary = simulation.run()
     text = simulation.summary_text
     ok = summary["status"] in ("completed", "terminated")
     if not args.quiet or not ok or stop.requested:

@@ -105,6 +105,15 @@ class ResultFolder:
     # -- before the run ------------------------------------------------------------------------
     def acquire(self) -> None:
         """Check the location, take the lock, create ``<out>.running``; OutputFolderError if unusable."""
+        try:
+            self._acquire()
+        except OutputFolderError:
+            raise
+        except OSError as exc:  # anything else the file system says (no permission to look, ...)
+            raise OutputFolderError(f"--out {self.out}: cannot be used ({exc.strerror or exc}: "
+                                    f"{exc.filename or self.out}): choose an --out in a folder you can write to") from None
+
+    def _acquire(self) -> None:
         out, parent = self.out, self.out.parent
         if out.exists() and not out.is_dir():
             raise OutputFolderError(f"--out {out}: a file of that name is in the way (a run writes a folder): "
@@ -219,7 +228,10 @@ class ResultFolder:
             os.unlink(self.lock_path)  # while still holding it: see _lock
         os.close(fd)
         if self.published is None and self.staging.exists():
-            logger.warning("the results of this run were left in %s", self.staging)
+            try:
+                self.staging.rmdir()  # empty: nothing ran (a scene or argument error)
+            except OSError:
+                logger.warning("the results of this run were left in %s", self.staging)
 
 
 def _read_pid(fd: int) -> int | None:

@@ -83,6 +83,20 @@ class StopRequest:
 _active: StopRequest | None = None
 
 
+def _take_over(request: StopRequest) -> dict:
+    """Point SIGINT and SIGTERM at ``request``; return the handlers replaced.
+
+    A signal this process ignores stays ignored: a sweep worker or a background job was told to
+    leave Ctrl-C to someone else (the sweep process, the shell), who stops it another way.
+    """
+    previous = {}
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is signal.SIG_IGN:
+            continue
+        previous[sig] = signal.signal(sig, request._handler)
+    return previous
+
+
 def active() -> StopRequest | None:
     """The request whose handlers are installed, if any."""
     return _active
@@ -97,7 +111,7 @@ def install() -> StopRequest:
     global _active
     if _active is None:
         request = StopRequest()
-        request._previous = {sig: signal.signal(sig, request._handler) for sig in STOP_SIGNALS}
+        request._previous = _take_over(request)
         _active = request
     return _active
 
@@ -130,7 +144,7 @@ def stop_signals() -> Iterator[StopRequest]:
         yield StopRequest()
         return
     request = StopRequest()
-    previous = {sig: signal.signal(sig, request._handler) for sig in STOP_SIGNALS}
+    previous = _take_over(request)
     _active = request
     try:
         yield request
