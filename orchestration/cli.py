@@ -166,10 +166,13 @@ def _simulate(args, stop, scene, folder, Simulation) -> int:
     summary = simulation.run()
     text = simulation.summary_text
     ok = summary["status"] in ("completed", "terminated")
-    if not args.quiet or not ok or stop.requested:
+    # The exit code tells what the summary says: a signal that came after it was written (while
+    # printing) changes nothing that happened.
+    stopped = "stop_request" in summary
+    if not args.quiet or not ok or stopped:
         print(text, flush=True)
     results = simulation.results_dir
-    if stop.requested:
+    if stopped:
         kept = f"; {folder.out} keeps the last complete run" if not ok and folder.out.exists() else ""
         print(f"{stop.reason}: status {summary['status']}, results in {results}{kept}", file=sys.stderr)
         return stop.exit_code

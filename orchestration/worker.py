@@ -157,7 +157,13 @@ class WorkerFmu:
                                         name=f"fmu-worker-{self.name}", daemon=True)
         # The child inherits this thread's signal mask across fork and exec: with SIGINT and
         # SIGTERM blocked it cannot die of a Ctrl-C during its interpreter start-up, before
-        # _worker_main ignores them. Here they stay pending and are handled right after.
+        # _worker_main ignores them. Here they stay pending and are handled right after. (A
+        # child dying then would also hang start(): it writes the pickled process object into a
+        # pipe whose reading end it holds itself.) The resource tracker is started first: starting
+        # it unblocks both signals behind our back.
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
         try:
             self._process.start()
