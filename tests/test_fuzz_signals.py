@@ -222,6 +222,9 @@ def test_a_signal_at_any_moment_stops_the_run_cleanly(built, hosting, signum, fr
     try:
         outcome = interrupt_and_check(root, hosting, signum, fraction * SPAN[hosting], group, again, with_old)
         OUTCOMES[outcome] = OUTCOMES.get(outcome, 0) + 1
+        # one line per passed case (seen with -s): a long run cut short still says how many passed
+        print(f"signal case passed: {hosting} {signal.Signals(signum).name} after {fraction * SPAN[hosting]:.3f} s "
+              f"group={group} again={again} old={with_old}: {outcome}", flush=True)
     finally:
         shutil.rmtree(root, ignore_errors=True)
 
