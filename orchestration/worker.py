@@ -20,8 +20,10 @@ the first calls (start, instantiation, initialization: loading and compiling) ge
 generous allowance. A missed deadline kills the worker and raises a WorkerCrash naming the call,
 the simulated time and the wait, so the run ends "failed".
 
-The worker ignores SIGINT and SIGTERM from its first instruction on (the terminal sends Ctrl-C to
-the whole process group; the master decides how the run stops and shuts the worker down).
+The worker ignores SIGINT from its first instruction on (the terminal sends Ctrl-C to the whole
+process group; the master decides how the run stops and shuts the worker down). SIGTERM keeps its
+default: it is how multiprocessing ends a daemon worker left over at exit; sent to the whole
+group (a service manager), it reaches the master first, which reports the run "interrupted".
 """
 from __future__ import annotations
 
@@ -156,11 +158,11 @@ class WorkerFmu:
         self._process = context.Process(target=_worker_main, args=(child_end, self.name, description),
                                         name=f"fmu-worker-{self.name}", daemon=True)
         # The child inherits this thread's signal mask across fork and exec: with SIGINT and
-        # SIGTERM blocked it cannot die of a Ctrl-C during its interpreter start-up, before
-        # _worker_main ignores them. Here they stay pending and are handled right after. (A
-        # child dying then would also hang start(): it writes the pickled process object into a
-        # pipe whose reading end it holds itself.) The resource tracker is started first: starting
-        # it unblocks both signals behind our back.
+        # SIGTERM blocked it cannot die of a signal sent to the group during its interpreter
+        # start-up, before _worker_main ignores SIGINT. (A child dying then would also hang
+        # start() forever: it writes the pickled process object into a pipe whose reading end it
+        # still holds itself.) Here they stay pending and are handled right after. The resource
+        # tracker is started first: starting it unblocks both signals behind our back.
         from multiprocessing import resource_tracker
 
         resource_tracker.ensure_running()
@@ -455,12 +457,11 @@ class _WorkerState:
 
 def _worker_main(conn, name: str, description: FmuDescription) -> None:
     """Serve commands until TERMINATE or until the master goes away."""
-    # Ctrl-C in the terminal reaches the whole process group (and a service manager may send
-    # SIGTERM to the group): the master handles both and shuts the worker down, so the worker must
-    # not die of them first. They were blocked since before the spawn (see instantiate): ignore,
-    # then unblock, which discards any that arrived meanwhile.
-    for sig in _STOP_SIGNALS:
-        signal.signal(sig, signal.SIG_IGN)
+    # Ctrl-C in the terminal reaches the whole process group: the master handles it and shuts
+    # the worker down, so the worker must not die of it first. Both signals were blocked since
+    # before the spawn (see instantiate): ignore SIGINT, then unblock, which discards a pending
+    # SIGINT (a pending SIGTERM ends the worker now, as it would have during start-up).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     state = _WorkerState(name, description)
     host = state.host
