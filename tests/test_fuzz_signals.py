@@ -389,3 +389,37 @@ def test_a_read_only_out_is_refused_and_its_results_kept(built, tmp_path, monkey
         assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     finally:
         out.chmod(0o755)
+
+
+def test_a_library_run_turns_sigint_into_an_interrupted_status_and_restores_the_handler(built, tmp_path):
+    """run_scene() from Python, in the main thread: Ctrl-C is a stop request for the run only."""
+    import threading
+
+    from orchestration.master import run_scene
+    from orchestration.scene import load_scene
+
+    before = signal.getsignal(signal.SIGINT)
+    done = threading.Event()
+
+    def interrupt_when_rows_arrive():
+        rows = tmp_path / "contact.csv"
+        while not done.is_set():
+            if rows.exists() and rows.read_text().count("\n") > 200:
+                os.kill(os.getpid(), signal.SIGINT)
+                return
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=interrupt_when_rows_arrive, daemon=True)
+    thread.start()
+    try:
+        summary, text = run_scene(load_scene(SCENE), tmp_path, hosting="in-process", duration=60.0, progress=False,
+                                  plots=False, vtu=False)
+    finally:
+        done.set()
+        thread.join()
+    assert summary["status"] == "interrupted", summary["error"]
+    assert summary["error"] == summary["stop_request"] == "interrupted by Ctrl-C (SIGINT)"
+    assert 0.2 <= summary["simulated_time_s"] < 60
+    assert signal.getsignal(signal.SIGINT) is before       # the run's handler is gone again
+    check_results(tmp_path, summary)
+    assert "virtual_wall: interrupted" in text
