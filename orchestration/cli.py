@@ -23,8 +23,11 @@ exit codes:
   1    the run failed (an FMU error, a crashed worker, a worker that stopped answering)
   2    a usage error: the scene, an argument, or an --out that cannot be used (read-only, a file in the
        way, another run using it); nothing ran
-  130  stopped by Ctrl-C (SIGINT); 143: stopped by SIGTERM. A second Ctrl-C stops faster (workers are
-       killed, plots skipped). The summary is written and printed either way.
+  130  stopped by Ctrl-C (SIGINT)
+  143  stopped by SIGTERM
+       The run stops between two steps (status "interrupted"; "completed" if the simulation had already
+       reached its end, then only the plots are skipped); the summary is written and printed either
+       way. A second Ctrl-C stops faster (workers are killed, plots skipped).
 
 results: the run writes into OUT.running and moves it into place when it ends, so earlier results are
 never overwritten by a run that did not finish:
@@ -32,7 +35,9 @@ never overwritten by a run that did not finish:
   interrupted       OUT.interrupted, and OUT keeps the last complete run
   failed            OUT.failed, and OUT keeps the last complete run
   killed (SIGKILL)  OUT.running, renamed OUT.killed by the next run into OUT
-OUT.lock holds the PID of the run using OUT; a second run into the same OUT is refused.
+Why beside and not in place: the partial rows are results and are kept, but a Ctrl-C must never cost
+the last complete results. OUT.lock holds the PID of the run using OUT; a second run into the same
+OUT is refused (a lock left by a dead run is taken over).
 """
 
 

@@ -110,8 +110,9 @@ class ResultFolder:
         except OutputFolderError:
             raise
         except OSError as exc:  # anything else the file system says (no permission to look, ...)
-            raise OutputFolderError(f"--out {self.out}: cannot be used ({exc.strerror or exc}: "
-                                    f"{exc.filename or self.out}): choose an --out in a folder you can write to") from None
+            where = exc.filename or self.out
+            raise OutputFolderError(f"--out {self.out}: cannot be used ({exc.strerror or exc}: {where}): "
+                                    "choose an --out in a folder you can write to") from None
 
     def _acquire(self) -> None:
         out, parent = self.out, self.out.parent
