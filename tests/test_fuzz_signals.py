@@ -219,14 +219,18 @@ OUTCOMES: dict[str, int] = {}
        group=st.booleans(), again=st.booleans(), with_old=st.booleans())
 def test_a_signal_at_any_moment_stops_the_run_cleanly(built, hosting, signum, fraction, group, again, with_old):
     root = Path(tempfile.mkdtemp(prefix="fuzz_signals_"))
+    case = (f"{hosting} {signal.Signals(signum).name} after {fraction * SPAN[hosting]:.3f} s "
+            f"group={group} again={again} old={with_old}")
     try:
         outcome = interrupt_and_check(root, hosting, signum, fraction * SPAN[hosting], group, again, with_old)
-        OUTCOMES[outcome] = OUTCOMES.get(outcome, 0) + 1
-        # one line per passed case (seen with -s): a long run cut short still says how many passed
-        print(f"signal case passed: {hosting} {signal.Signals(signum).name} after {fraction * SPAN[hosting]:.3f} s "
-              f"group={group} again={again} old={with_old}: {outcome}", flush=True)
+    except BaseException as exc:
+        # one line per case (seen with -s): a long run cut short still says what passed and failed
+        print(f"signal case FAILED: {case}: {type(exc).__name__}: {str(exc)[:300]!r}", flush=True)
+        raise
     finally:
         shutil.rmtree(root, ignore_errors=True)
+    OUTCOMES[outcome] = OUTCOMES.get(outcome, 0) + 1
+    print(f"signal case passed: {case}: {outcome}", flush=True)
 
 
 def test_the_fuzzer_reached_both_ends(built):
