@@ -12,7 +12,9 @@ Ctrl-C and SIGTERM (:mod:`.stopping`) only set ``algorithm.stop_reason`` from th
 starts until its summary is written: the algorithm stops between ticks or between setup calls, an
 FMU call never sees a ``KeyboardInterrupt``, and teardown, plots and the summary are never cut
 short by an exception. A failure that follows a stop request (a worker killed on the second
-Ctrl-C) is reported as "interrupted", with the failure in the error text.
+Ctrl-C) is reported as "interrupted", with the failure in the error text. Called from Python
+(not the command line), ``run()`` then delivers the signal to the caller as usual
+(``KeyboardInterrupt`` for Ctrl-C) once the summary is written.
 
 With a :class:`~.outfolder.ResultFolder` (the command line) the run writes into ``<out>.running``
 and the folder is moved into place at the end (see :mod:`.outfolder`); the summary names the

@@ -134,7 +134,9 @@ def stop_signals() -> Iterator[StopRequest]:
 
     Reuses the handlers already installed (the command line installs them for the whole
     process). Off the main thread (where Python cannot install handlers) it yields a request no
-    signal sets, so a run in a thread pool behaves as before.
+    signal sets, so a run in a thread pool behaves as before. A signal that arrived is delivered
+    again once the previous handlers are back: a program calling ``run_scene`` (a study's loop)
+    still gets its ``KeyboardInterrupt``, but only after the run's results and summary are written.
     """
     global _active
     if _active is not None:
@@ -153,4 +155,5 @@ def stop_signals() -> Iterator[StopRequest]:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if request.requested:
-            logger.debug("run stopped: %s (%d signal(s))", request.reason, request.count)
+            logger.debug("run stopped: %s (%d signal(s)); delivering it to the caller", request.reason, request.count)
+            signal.raise_signal(request.signum)

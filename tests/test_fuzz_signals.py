@@ -395,8 +395,9 @@ def test_a_read_only_out_is_refused_and_its_results_kept(built, tmp_path, monkey
         out.chmod(0o755)
 
 
-def test_a_library_run_turns_sigint_into_an_interrupted_status_and_restores_the_handler(built, tmp_path):
-    """run_scene() from Python, in the main thread: Ctrl-C is a stop request for the run only."""
+def test_a_library_run_stops_cleanly_on_sigint_then_hands_the_keyboardinterrupt_on(built, tmp_path):
+    """run_scene() from Python, in the main thread: Ctrl-C stops the run between ticks, its results
+    and summary are written, and then the caller (a study's loop) gets its KeyboardInterrupt."""
     import threading
 
     from orchestration.master import run_scene
@@ -416,14 +417,15 @@ def test_a_library_run_turns_sigint_into_an_interrupted_status_and_restores_the_
     thread = threading.Thread(target=interrupt_when_rows_arrive, daemon=True)
     thread.start()
     try:
-        summary, text = run_scene(load_scene(SCENE), tmp_path, hosting="in-process", duration=60.0, progress=False,
-                                  plots=False, vtu=False)
+        with pytest.raises(KeyboardInterrupt):
+            run_scene(load_scene(SCENE), tmp_path, hosting="in-process", duration=60.0, progress=False,
+                      plots=False, vtu=False)
     finally:
         done.set()
         thread.join()
+    summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["status"] == "interrupted", summary["error"]
     assert summary["error"] == summary["stop_request"] == "interrupted by Ctrl-C (SIGINT)"
     assert 0.2 <= summary["simulated_time_s"] < 60
     assert signal.getsignal(signal.SIGINT) is before       # the run's handler is gone again
     check_results(tmp_path, summary)
-    assert "virtual_wall: interrupted" in text
