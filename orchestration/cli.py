@@ -27,7 +27,7 @@ exit codes:
   143  stopped by SIGTERM
        The run stops between two steps (status "interrupted"; "completed" if the simulation had already
        reached its end, then only the plots are skipped); the summary is written and printed either
-       way. A second Ctrl-C stops faster (workers are killed, plots skipped).
+       way. A second Ctrl-C stops faster (workers are killed instead of waited for).
 
 results: the run writes into OUT.running and moves it into place when it ends, so earlier results are
 never overwritten by a run that did not finish:

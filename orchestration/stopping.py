@@ -5,8 +5,9 @@ In-process FMUs run Python code (the models) called through ctypes from this ver
 inside the FMU (and, once in a while, a crash of the interpreter), so while a run is in progress
 SIGINT and SIGTERM must not raise: their handlers here only record the request and tell the
 listeners (the master sets ``algorithm.stop_reason``, checked between ticks and between setup
-calls, as cheap as before). The first request stops the run cleanly at the next tick; a second one
-forces a faster stop (workers are killed instead of waited for, plots are skipped); either way
+calls, as cheap as before). The first request stops the run cleanly at the next tick (a worker
+still loading is killed, plots are skipped); a second one forces a faster stop (workers are killed
+instead of waited for); either way
 the recorded rows and the summary are written.
 
 Exit codes of ``python -m orchestration run`` after a stop: 128 + the signal number, as a shell
