@@ -7,8 +7,7 @@ SIGINT and SIGTERM must not raise: their handlers here only record the request a
 listeners (the master sets ``algorithm.stop_reason``, checked between ticks and between setup
 calls, as cheap as before). The first request stops the run cleanly at the next tick (a worker
 still loading is killed, plots are skipped); a second one forces a faster stop (workers are killed
-instead of waited for); either way
-the recorded rows and the summary are written.
+instead of waited for); either way the recorded rows and the summary are written.
 
 Exit codes of ``python -m orchestration run`` after a stop: 128 + the signal number, as a shell
 reports a process ended by that signal: :data:`EXIT_SIGINT` (130) for Ctrl-C,
