@@ -163,7 +163,10 @@ class MultirateAlgorithm:
         self.components: dict[str, Component] = {}
         self.ordered: list[Component] = []
         self.sources: dict[str, object] = {}
+        #: set by the master's SIGINT/SIGTERM handler; checked between ticks and between setup calls
         self.stop_reason: str | None = None
+        #: 1 after a stop request, 2 after a second one (forced); handed to hosts that wait (workers)
+        self.stop_level = 0
         #: set when a component asked to end the run; the others finish the steps that end by then
         self.terminated: RunTerminated | None = None
         self._source_cache: dict[str, tuple[int, dict]] = {}
@@ -179,6 +182,11 @@ class MultirateAlgorithm:
     def reached(self) -> int:
         """The tick every component has reached."""
         return min((c.time for c in self.ordered), default=0)
+
+    def check_stop(self) -> None:
+        """Raise RunInterrupted if a stop was requested (between calls, never inside one)."""
+        if self.stop_reason:
+            raise RunInterrupted(self.stop_reason)
 
     # -- setup -----------------------------------------------------------------------------------
     def setup(self) -> None:
@@ -231,12 +239,17 @@ class MultirateAlgorithm:
                 _add(self.components[name].observed, port)
 
         # Hosts, instantiated one after the other (a worker process loads its FMU while the master waits).
+        self.check_stop()
         for comp in self.ordered:
             comp.host = self.make_host(comp.spec)
             comp.asynchronous = comp.host.wait_handle() is not None
+            if hasattr(comp.host, "stop_level"):
+                comp.host.stop_level = self.stop_level
         for comp in self.ordered:
+            self.check_stop()
             call(comp, "instantiate", 0.0, comp.host.instantiate)
         for comp in self.ordered:
+            self.check_stop()
             if comp.spec.parameters:  # structural ones are set in Configuration Mode by the host
                 call(comp, "set parameters", 0.0, lambda c=comp: c.host.set_values(c.spec.parameters))
             call(comp, "fmi3EnterInitializationMode", 0.0, lambda c=comp: c.host.enter_initialization(0.0))
@@ -253,6 +266,7 @@ class MultirateAlgorithm:
         self.notify("initializing")
         done: set[str] = set()
         for comp in self.ordered:
+            self.check_stop()
             parameters = {}
             for route in comp.routes:
                 if not route.parameter:

@@ -15,6 +15,30 @@ logger = logging.getLogger("orchestration")
 
 DEFAULT_SCENE = "aaa_endovascular"
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+EXIT_SIGINT, EXIT_SIGTERM = 130, 143  # 128 + the signal, as a shell reports it (orchestration.stopping)
+
+RUN_EPILOG = """\
+exit codes:
+  0    the run completed (or an FMU ended it with terminateSimulation)
+  1    the run failed (an FMU error, a crashed worker, a worker that stopped answering)
+  2    a usage error: the scene, an argument, or an --out that cannot be used (read-only, a file in the
+       way, another run using it); nothing ran
+  130  stopped by Ctrl-C (SIGINT)
+  143  stopped by SIGTERM
+       The run stops between two steps (status "interrupted"; "completed" if the simulation had already
+       reached its end, then only the plots are skipped); the summary is written and printed either
+       way. A second Ctrl-C stops faster (workers are killed instead of waited for).
+
+results: the run writes into OUT.running and moves it into place when it ends, so earlier results are
+never overwritten by a run that did not finish:
+  completed         OUT (the earlier OUT is replaced)
+  interrupted       OUT.interrupted, and OUT keeps the last complete run
+  failed            OUT.failed, and OUT keeps the last complete run
+  killed (SIGKILL)  OUT.running, renamed OUT.killed by the next run into OUT
+Why beside and not in place: the partial rows are results and are kept, but a Ctrl-C must never cost
+the last complete results. OUT.lock holds the PID of the run using OUT; a second run into the same
+OUT is refused (a lock left by a dead run is taken over).
+"""
 
 
 def _cmd_build(args) -> int:
@@ -77,12 +101,43 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_run(args) -> int:
+    from .stopping import stop_signals
+
+    # From here to the exit code, Ctrl-C and SIGTERM only set a flag (python -m orchestration
+    # installed the handlers before its imports; main() called from Python installs them here).
+    with stop_signals() as stop:
+        return _run_command(args, stop)
+
+
+def _run_command(args, stop) -> int:
+    from .outfolder import OutputFolderError, ResultFolder
+
+    # An --out that cannot be used is refused first, before a build or a scene load can take a
+    # minute (the default folder needs the scene's name: it is checked once the scene is loaded).
+    folder = ResultFolder(args.out) if args.out else None
+    try:
+        if folder is not None:
+            folder.acquire()
+        return _prepare_and_run(args, stop, folder)
+    except OutputFolderError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    finally:
+        if folder is not None:
+            folder.release()
+
+
+def _prepare_and_run(args, stop, folder) -> int:
     from .build import BuildError, ensure_fmus_built
     from .master import Simulation
+    from .outfolder import ResultFolder
 
     try:
         ensure_fmus_built(args.quiet)
     except BuildError as exc:
+        if stop.requested:  # the build's compiler got the Ctrl-C too
+            print(f"error: {stop.reason} while building the FMUs; nothing ran", file=sys.stderr)
+            return stop.exit_code
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     try:
@@ -93,10 +148,20 @@ def _cmd_run(args) -> int:
     scene = _load(args.scene, overrides)
     if scene is None:
         return EXIT_USAGE
-    out = Path(args.out) if args.out else Path("results") / scene.name
+    if folder is None:
+        folder = ResultFolder(Path("results") / scene.name)
+        folder.acquire()
+        try:
+            return _simulate(args, stop, scene, folder, Simulation)
+        finally:
+            folder.release()
+    return _simulate(args, stop, scene, folder, Simulation)
+
+
+def _simulate(args, stop, scene, folder, Simulation) -> int:
     try:
-        simulation = Simulation(scene, out, hosting=args.hosting, realtime=args.realtime or None,
-                                progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
+        simulation = Simulation(scene, folder.out, hosting=args.hosting, realtime=args.realtime or None,
+                                progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu, folder=folder)
     except ValueError as exc:  # a --duration that does not fit the steps
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -105,10 +170,20 @@ def _cmd_run(args) -> int:
               f"{simulation.hosting} ...", flush=True)
     summary = simulation.run()
     text = simulation.summary_text
-    if not args.quiet or summary["status"] not in ("completed", "terminated"):
-        print(text)
-    if summary["status"] not in ("completed", "terminated"):
-        print(f"error: {summary['error']}\nresults up to the failure are in {out}", file=sys.stderr)
+    ok = summary["status"] in ("completed", "terminated")
+    # The exit code tells what the summary says: a signal that came after it was written (while
+    # printing) changes nothing that happened.
+    stopped = "stop_request" in summary
+    if not args.quiet or not ok or stopped:
+        print(text, flush=True)
+    results = simulation.results_dir
+    if stopped:
+        kept = f"; {folder.out} keeps the last complete run" if not ok and folder.out.exists() else ""
+        print(f"{stop.reason}: status {summary['status']}, results in {results}{kept}", file=sys.stderr)
+        return stop.exit_code
+    if not ok:
+        kept = f" ({folder.out} keeps the last complete run)" if folder.out.exists() else ""
+        print(f"error: {summary['error']}\nresults up to the failure are in {results}{kept}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 
@@ -124,6 +199,12 @@ def _cmd_study(args) -> int:
         return EXIT_USAGE
     return run_study(args.name, out=args.out, quick=args.quick, workers=args.workers, scheduler=args.scheduler,
                      fresh=args.fresh, quiet=args.quiet)
+
+
+def _release_stop_signals() -> None:
+    from . import stopping
+
+    stopping.uninstall()  # re-raises a Ctrl-C that arrived before the command was known
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,10 +223,12 @@ def main(argv: list[str] | None = None) -> int:
     p_val.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
     p_val.set_defaults(func=_cmd_validate)
 
-    p_run = sub.add_parser("run", help="run a scene (default: the AAA endovascular scene; builds the FMUs if needed)")
+    p_run = sub.add_parser("run", help="run a scene (default: the AAA endovascular scene; builds the FMUs if needed)",
+                           epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p_run.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help=f"scene file or name (default {DEFAULT_SCENE})")
     p_run.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scene's)")
-    p_run.add_argument("--out", default=None, help="result folder (default results/<scene>)")
+    p_run.add_argument("--out", default=None, help="result folder (default results/<scene>); replaced only by a "
+                                                  "run that completes, see below")
     p_run.add_argument("--hosting", choices=("in-process", "out-of-process"), default=None,
                        help="run every FMU in this process or each in a worker process of its own (default: "
                             "the scene's choice per FMU; the shipped tissue scenes put the 30 Hz tissue in a worker)")
@@ -166,7 +249,14 @@ def main(argv: list[str] | None = None) -> int:
     p_study.add_argument("--quiet", action="store_true", help="no progress bar")
     p_study.set_defaults(func=_cmd_study)
 
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit:
+        _release_stop_signals()
+        raise
+    if args.command not in (None, "run"):
+        # Only a run stops on a flag; the other commands get Ctrl-C back as usual.
+        _release_stop_signals()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.command is None:

@@ -3,15 +3,26 @@
 The algorithm (:mod:`.algorithm`) schedules and steps the components and routes values; the
 observers (:mod:`.observers`) record, summarise, pace and show progress; :mod:`.summary` writes
 the result. This module puts them together for one run and is where failures become a status:
-a failure of any component (an error status, a crashed worker), Ctrl-C or SIGTERM ends the run
-with everything recorded so far on disk and a summary that says which component, which call and
-at what simulated time; an FMU's ``terminateSimulation`` ends it as "terminated".
+a failure of any component (an error status, a crashed worker, a worker that stops answering),
+Ctrl-C or SIGTERM ends the run with everything recorded so far on disk and a summary that says
+which component, which call and at what simulated time; an FMU's ``terminateSimulation`` ends it
+as "terminated".
+
+Ctrl-C and SIGTERM (:mod:`.stopping`) only set ``algorithm.stop_reason`` from the moment the run
+starts until its summary is written: the algorithm stops between ticks or between setup calls, an
+FMU call never sees a ``KeyboardInterrupt``, and teardown, plots and the summary are never cut
+short by an exception. A failure that follows a stop request (a worker killed on the second
+Ctrl-C) is reported as "interrupted", with the failure in the error text. Called from Python
+(not the command line), ``run()`` then delivers the signal to the caller as usual
+(``KeyboardInterrupt`` for Ctrl-C) once the summary is written.
+
+With a :class:`~.outfolder.ResultFolder` (the command line) the run writes into ``<out>.running``
+and the folder is moved into place at the end (see :mod:`.outfolder`); the summary names the
+final folder.
 """
 from __future__ import annotations
 
 import logging
-import signal
-import threading
 import time
 from fractions import Fraction
 from pathlib import Path
@@ -22,6 +33,7 @@ from .algorithm import MultirateAlgorithm, RunInterrupted, RunTerminated, tick_b
 from .errors import OrchestrationError
 from .observers import Progress, RealtimePacing, Recording, Statistics
 from .scene import ComponentSpec, Scene, duration_problem, float_time
+from .stopping import stop_signals
 from .summary import fmu_messages, format_summary
 
 logger = logging.getLogger(__name__)
@@ -36,9 +48,15 @@ class Simulation:
 
     def __init__(self, scene: Scene, out_dir: Path | str, *, hosting: str | None = None,
                  realtime: bool | None = None, progress: bool = True, duration: Fraction | float | None = None,
-                 plots: bool = True, vtu: bool = True, observe: dict[str, list[str]] | None = None):
+                 plots: bool = True, vtu: bool = True, observe: dict[str, list[str]] | None = None,
+                 folder=None):
         self.scene = scene
-        self.out_dir = Path(out_dir)
+        #: the command line's ResultFolder (lock, ``<out>.running``, replaced at the end) or None:
+        #: then the run writes straight into ``out_dir``
+        self.folder = folder
+        self.out_dir = Path(out_dir) if folder is None else folder.staging
+        #: where the results are once the run has ended
+        self.results_dir = Path(out_dir) if folder is None else folder.out
         #: forced for every FMU (the command line's --hosting), else each FMU's own or the scene's
         self.forced_hosting = hosting
         self.realtime = scene.realtime if realtime is None else realtime
@@ -81,10 +99,14 @@ class Simulation:
             return InProcessFmu(spec.name, spec.description)
         from .worker import WorkerFmu
 
-        return WorkerFmu(spec.name, spec.description)
+        return WorkerFmu(spec.name, spec.description, reply_timeout=getattr(self.scene, "worker_timeout", None))
 
     # -- the run -----------------------------------------------------------------------------------
     def run(self) -> dict:
+        with stop_signals() as stop:
+            return self._run(stop)
+
+    def _run(self, stop) -> dict:
         from .recording import write_summary
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -96,11 +118,19 @@ class Simulation:
         algorithm = MultirateAlgorithm(self.scene, self.duration, self._make_host, observers, self.extra_observed)
         self.algorithm = algorithm
 
+        def on_stop(request):
+            # A signal handler: flags only. The hosts see the level while they wait for a worker.
+            algorithm.stop_reason = request.reason
+            for comp in algorithm.ordered:
+                if comp.host is not None and hasattr(comp.host, "stop_level"):
+                    comp.host.stop_level = min(request.count, 2)
+            algorithm.stop_level = min(request.count, 2)
+
         status, error = "completed", None
         t_setup = time.perf_counter()
         loop_start = None
         wall = 0.0
-        previous_handler = self._install_signal_handler(algorithm)
+        stop.listen(on_stop)
         try:
             algorithm.setup()
             algorithm.initialize()
@@ -110,28 +140,42 @@ class Simulation:
             status, error = "terminated", str(exc)
         except RunInterrupted as exc:
             status, error = "interrupted", str(exc)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # off the main thread no handler is installed: Python's own
             status, error = "interrupted", "interrupted by Ctrl-C"
         except OrchestrationError as exc:
-            status, error = "failed", str(exc)
+            if stop.requested:  # e.g. a worker killed on the second Ctrl-C: the user's stop came first
+                status, error = "interrupted", f"{stop.reason}; then {exc}"
+            else:
+                status, error = "failed", str(exc)
         finally:
             now = time.perf_counter()
             wall = now - loop_start if loop_start is not None else 0.0
             setup_time = (loop_start if loop_start is not None else now) - t_setup
-            self._restore_signal_handler(previous_handler)
             progress.finished(algorithm)
             self.final_outputs = algorithm.keep_outputs()
             recording.close()
             messages = algorithm.teardown()
+        final_dir = self.folder.destination(status) if self.folder is not None else self.out_dir
         summary = self._summary(algorithm, status, error, wall, setup_time, statistics, pacing, recording, messages)
+        if stop.requested:
+            summary["stop_request"] = stop.reason
         if self.make_plots and self.scene.plots and recording.recorder is not None:
-            try:
-                from .plots import plot_signals
+            if stop.requested:  # the user wants out: the CSVs hold everything a figure would show
+                summary["results"]["plots"] = "skipped (stop requested)"
+            else:
+                try:
+                    from .plots import plot_signals
 
-                summary["results"]["plots"] = [str(p) for p in plot_signals(self.out_dir, self.scene.plots)]
-            except Exception as exc:  # plots are a convenience: never lose the summary over them
-                logger.warning("plots failed: %s", exc)
+                    summary["results"]["plots"] = [str(p) for p in plot_signals(self.out_dir, self.scene.plots)]
+                except Exception as exc:  # plots are a convenience: never lose the summary over them
+                    logger.warning("plots failed: %s", exc)
+        if final_dir != self.out_dir:
+            _relocate(summary["results"], self.out_dir, final_dir)
         write_summary(self.out_dir, summary)
+        if self.folder is not None:
+            self.folder.publish(status)
+        self.results_dir = final_dir
+        stop.unlisten(on_stop)
         self.summary_text = self.format(summary)
         return summary
 
@@ -169,20 +213,16 @@ class Simulation:
                               **{k: str(v) for k, v in recording.files.items() if not k.endswith("]")}}
         return summary
 
-    @staticmethod
-    def _install_signal_handler(algorithm):
-        if threading.current_thread() is not threading.main_thread():
-            return None
 
-        def on_term(signum, frame):
-            algorithm.stop_reason = "stopped by SIGTERM"
-
-        return signal.signal(signal.SIGTERM, on_term)
-
-    @staticmethod
-    def _restore_signal_handler(previous) -> None:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+def _relocate(results: dict, old: Path, new: Path) -> None:
+    """Rewrite the paths in the summary's ``results`` from the folder written to the final one."""
+    old_text, new_text = str(old), str(new)
+    for key, value in results.items():
+        if isinstance(value, str) and (value == old_text or value.startswith(old_text + "/")):
+            results[key] = new_text + value[len(old_text):]
+        elif isinstance(value, list):
+            results[key] = [new_text + v[len(old_text):] if isinstance(v, str) and v.startswith(old_text + "/") else v
+                            for v in value]
 
 
 def run_scene(scene: Scene, out_dir, **kwargs) -> tuple[dict, str]:

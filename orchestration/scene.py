@@ -40,7 +40,7 @@ TRANSITIONS = tuple(tr.REGISTRY)
 ORDERINGS = ("gauss-seidel", "jacobi")
 HOSTINGS = ("in-process", "out-of-process")
 
-_SCENE_KEYS = {"name", "description", "duration", "hosting", "realtime", "start_time"}
+_SCENE_KEYS = {"name", "description", "duration", "hosting", "realtime", "start_time", "worker_timeout"}
 _FMU_KEYS = {"path", "step", "parameters", "hosting"}
 _CONNECTION_KEYS = {"from", "to", "transition", "ordering"}
 _SUMMARY_KEYS = {"peaks", "energy", "warnings", "deadlines"}
@@ -127,6 +127,9 @@ class Scene:
     summary: dict
     hosting: str = "out-of-process"
     realtime: bool = False
+    #: run-faults (issue 14): seconds a worker process may take to answer during the run;
+    #: None: automatic, max(10 s, 100 x its slowest recent reply) (see orchestration.worker)
+    worker_timeout: float | None = None
 
     def incoming(self, component: str) -> list[ConnectionSpec]:
         return [c for c in self.connections if c.target == component]
@@ -295,6 +298,13 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     realtime = head.get("realtime", False)
     if not isinstance(realtime, bool):
         problems.append(f"[scene] realtime: must be true or false (got {realtime!r})")
+    # run-faults (issue 14): the worker reply deadline; kept to this one place.
+    worker_timeout = head.get("worker_timeout")
+    if worker_timeout is not None and (isinstance(worker_timeout, bool) or not isinstance(worker_timeout, (int, float))
+                                       or not 0 < worker_timeout < float("inf")):
+        problems.append(f"[scene] worker_timeout: seconds a worker may take to answer, a number > 0 "
+                        f"(got {worker_timeout!r}); leave it out for the automatic max(10 s, 100 x slowest reply)")
+        worker_timeout = None
 
     components: dict[str, ComponentSpec] = {}
     declared = {name for section in ("fmu", "source", "block") for name in data.get(section, {})
@@ -328,7 +338,8 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
         raise SceneError(path, problems)
     return Scene(path=path, name=name, description=str(head.get("description", "")), duration=duration,
                  components=components, connections=connections, record=record, surfaces=surfaces, plots=plots,
-                 summary=summary, hosting=hosting, realtime=realtime)
+                 summary=summary, hosting=hosting, realtime=realtime,
+                 worker_timeout=None if worker_timeout is None else float(worker_timeout))
 
 
 def _apply_overrides(name: str, parameters: dict, overrides: dict) -> dict:

@@ -12,6 +12,18 @@ Each reply carries the FMU's log messages since the previous one; they land in `
 the ``orchestration.fmu.<name>`` logger of the master. While waiting, the master watches the
 worker's process sentinel as well as the pipe, so a worker that dies (segfault, abort, kill)
 raises :class:`~orchestration.errors.WorkerCrash` instead of hanging or killing the master.
+
+A worker that is alive but does not answer (stopped with SIGSTOP, deadlocked, swapping) is not
+waited for forever: every reply has a deadline. During the run it is the scene's
+``[scene] worker_timeout`` if set, else ``max(10 s, 100 x the slowest of the recent replies)``;
+the first calls (start, instantiation, initialization: loading and compiling) get a separate,
+generous allowance. A missed deadline kills the worker and raises a WorkerCrash naming the call,
+the simulated time and the wait, so the run ends "failed".
+
+The worker ignores SIGINT from its first instruction on (the terminal sends Ctrl-C to the whole
+process group; the master decides how the run stops and shuts the worker down). SIGTERM keeps its
+default: it is how multiprocessing ends a daemon worker left over at exit; sent to the whole
+group (a service manager), it reaches the master first, which reports the run "interrupted".
 """
 from __future__ import annotations
 
@@ -31,10 +43,22 @@ from .ports import FmuDescription, PortInfo
 
 logger = logging.getLogger(__name__)
 
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
 #: While waiting for a reply, how often the master checks that the worker is still alive (ms).
 _LIVENESS_INTERVAL_MS = 500
 #: How long terminate() waits for the worker to shut down cleanly before killing it (s).
 _SHUTDOWN_TIMEOUT = 10.0
+#: The automatic reply deadline during the run: at least this many seconds ...
+REPLY_TIMEOUT_FLOOR = 10.0
+#: ... or this many times the slowest reply of the recent ones (a step's cost varies: a tissue
+#: step that refactorises takes 10x its median; a 100x margin only catches a worker that is stuck).
+REPLY_TIMEOUT_FACTOR = 100.0
+#: Replies per window of the "recent" slowest reply (the last one to two windows count).
+_RECENT_WINDOW = 256
+#: The allowance for the first calls (instantiation, initialization), which may load a model
+#: and compile its kernels (about a minute here with an empty numba cache).
+SETUP_TIMEOUT = 600.0
 
 
 class Command:
@@ -82,16 +106,28 @@ class Reply:
 class WorkerFmu:
     """The :class:`~orchestration.hosting.ComponentHost` protocol, with the FMU in a worker process.
 
-    ``start_timeout`` bounds the worker's start (interpreter, imports); FMU calls have no
-    timeout, since a model step may legitimately take long.
+    ``start_timeout`` bounds the worker's start (interpreter, imports); ``setup_timeout`` each
+    call until the FMU is initialized; ``reply_timeout`` each later reply (None: automatic, see the
+    module doc). ``stop_level`` is set by the master on Ctrl-C/SIGTERM: 1 abandons a setup call
+    that is still running (a worker compiling for a minute is killed, not waited for), 2 (a
+    second signal) abandons any call.
     """
 
-    def __init__(self, name: str, description: FmuDescription, start_timeout: float = 120.0):
+    def __init__(self, name: str, description: FmuDescription, start_timeout: float = 120.0,
+                 reply_timeout: float | None = None, setup_timeout: float = SETUP_TIMEOUT):
         self.name = name
         self.description = description
         self.ports: dict[str, PortInfo] = dict(description.ports)
         self.messages: list[tuple[int, str]] = []
         self.start_timeout = float(start_timeout)
+        self.reply_timeout = None if reply_timeout is None else float(reply_timeout)
+        self.setup_timeout = max(float(setup_timeout), self.reply_timeout or 0.0)
+        self.stop_level = 0
+        self._in_setup = True        # until exit_initialization has answered
+        self._sent_at = 0.0          # monotonic time of the last command sent
+        self._slowest = 0.0          # slowest reply in the current window of recent ones (s)
+        self._slowest_before = 0.0   # ... and in the window before
+        self._replies = 0
         self.terminate_requested = False
         self.early_return = False
         self.last_successful_time = 0.0
@@ -121,9 +157,23 @@ class WorkerFmu:
         description = dataclasses.replace(self.description, model_description=None)
         self._process = context.Process(target=_worker_main, args=(child_end, self.name, description),
                                         name=f"fmu-worker-{self.name}", daemon=True)
-        self._process.start()
+        # The child inherits this thread's signal mask across fork and exec: with SIGINT and
+        # SIGTERM blocked it cannot die of a signal sent to the group during its interpreter
+        # start-up, before _worker_main ignores SIGINT. (A child dying then would also hang
+        # start() forever: it writes the pickled process object into a pipe whose reading end it
+        # still holds itself.) Here they stay pending and are handled right after. The resource
+        # tracker is started first: starting it unblocks both signals behind our back.
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        try:
+            self._process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child_end.close()  # so that the worker's death reads as end-of-file here
         self._conn = parent_end
+        self._sent_at = time.monotonic()
         self._receive("start worker", timeout=self.start_timeout)
         self._call("fmi3InstantiateCoSimulation", (Command.INSTANTIATE,))
 
@@ -144,6 +194,7 @@ class WorkerFmu:
 
     def exit_initialization(self) -> None:
         self._call("fmi3ExitInitializationMode", (Command.EXIT_INITIALIZATION,))
+        self._in_setup = False
 
     def configure(self, inputs: list[str], observed: list[str]) -> None:
         inputs, observed = list(inputs), list(observed)
@@ -228,8 +279,10 @@ class WorkerFmu:
                         self._receive("fmi3DoStep", timeout=_SHUTDOWN_TIMEOUT)
                     except FmuCallError:
                         pass
-                conn.send((Command.TERMINATE,))
-                self._receive("fmi3Terminate", timeout=_SHUTDOWN_TIMEOUT)
+                if self._crash_reason is None:  # not killed while we waited for that reply
+                    conn.send((Command.TERMINATE,))
+                    self._sent_at = time.monotonic()
+                    self._receive("fmi3Terminate", timeout=_SHUTDOWN_TIMEOUT)
         except Exception as exc:  # terminate never raises: the worker is killed below if need be
             logger.warning("%s: clean worker shutdown failed: %s", self.name, exc)
         if process is not None:
@@ -277,6 +330,18 @@ class WorkerFmu:
             self._conn.send(message)
         except (BrokenPipeError, ConnectionError, EOFError, OSError):
             raise self._crashed(call) from None
+        self._sent_at = time.monotonic()
+
+    def reply_deadline(self) -> tuple[float, str]:
+        """How long the next reply may take (s), and why that long (for the error message)."""
+        if self._in_setup:
+            return self.setup_timeout, "the allowance for its first calls (loading, instantiation, initialization)"
+        if self.reply_timeout is not None:
+            return self.reply_timeout, "the scene's [scene] worker_timeout"
+        slowest = max(self._slowest, self._slowest_before)
+        timeout = max(REPLY_TIMEOUT_FLOOR, REPLY_TIMEOUT_FACTOR * slowest)
+        return timeout, (f"max({REPLY_TIMEOUT_FLOOR:g} s, {REPLY_TIMEOUT_FACTOR:g} x its slowest recent reply of "
+                         f"{slowest:.3g} s); set [scene] worker_timeout to change it")
 
     def _receive(self, call: str, timeout: float | None = None):
         conn = self._conn
@@ -288,30 +353,55 @@ class WorkerFmu:
             poller.register(conn.fileno(), select.POLLIN)
             poller.register(self._process.sentinel, select.POLLIN)
         conn_fd = conn.fileno()
-        deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             events = poller.poll(_LIVENESS_INTERVAL_MS)
             if any(fd == conn_fd for fd, _ in events):
                 break
+            # Only after half a second without an answer: the hot path never gets here.
             if events or not self._process.is_alive():  # the sentinel: the worker is gone
                 if conn.poll():  # it answered before it went away
                     break
                 raise self._crashed(call)
-            if deadline is not None and time.monotonic() > deadline:
-                self._process.kill()
-                self._process.join(5.0)
-                self._crash_reason = f"the worker did not answer within {timeout:.0f} s and was killed"
+            waited = time.monotonic() - self._sent_at
+            if self.stop_level >= (1 if self._in_setup else 2):
+                self._kill(f"the run was stopped while the worker was busy with it ({waited:.1f} s); "
+                           "the worker was killed")
+                raise WorkerCrash(self.name, call, self._time, self._crash_reason)
+            if timeout is not None:
+                limit, why = timeout, "the allowance for this call"
+            else:
+                limit, why = self.reply_deadline()
+            if waited > limit:
+                pid = self._process.pid
+                self._kill(f"the worker (pid {pid}) did not answer within {limit:.3g} s ({why}); it was killed "
+                           f"after {waited:.3g} s")
                 raise WorkerCrash(self.name, call, self._time, self._crash_reason)
         try:
             kind, payload, messages = conn.recv()
         except (EOFError, ConnectionError, OSError):
             raise self._crashed(call) from None
+        if not self._in_setup:
+            elapsed = time.monotonic() - self._sent_at
+            if elapsed > self._slowest:
+                self._slowest = elapsed
+            self._replies += 1
+            if self._replies >= _RECENT_WINDOW:
+                self._slowest_before, self._slowest, self._replies = self._slowest, 0.0, 0
         for status, text in messages:
             self.messages.append((status, text))
             self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)
         if kind == Reply.RAISE:
             raise payload
         return payload
+
+    def _kill(self, reason: str) -> None:
+        """Kill the worker (works on a stopped process too) and record why it is gone."""
+        self._crash_reason = reason
+        try:
+            self._process.kill()
+            self._process.join(5.0)
+        except Exception as exc:
+            logger.warning("%s: killing the worker failed: %s", self.name, exc)
 
     def _crashed(self, call: str) -> WorkerCrash:
         """The WorkerCrash for ``call``; the first one records why the worker is gone."""
@@ -368,8 +458,11 @@ class _WorkerState:
 def _worker_main(conn, name: str, description: FmuDescription) -> None:
     """Serve commands until TERMINATE or until the master goes away."""
     # Ctrl-C in the terminal reaches the whole process group: the master handles it and shuts
-    # the worker down, so the worker must not die of it first.
+    # the worker down, so the worker must not die of it first. Both signals were blocked since
+    # before the spawn (see instantiate): ignore SIGINT, then unblock, which discards a pending
+    # SIGINT (a pending SIGTERM ends the worker now, as it would have during start-up).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     state = _WorkerState(name, description)
     host = state.host
 

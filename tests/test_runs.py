@@ -103,35 +103,52 @@ def _wait_for_rows(path: Path, rows: int, timeout: float = 120.0) -> None:
 
 
 def test_a_killed_run_keeps_its_results(built, tmp_path):
-    proc = _start_long_run(tmp_path)
+    """SIGKILL: no handler runs; the rows are in OUT.running and the next run keeps them as OUT.killed."""
+    out = tmp_path / "out"
+    proc = _start_long_run(out)
+    running = tmp_path / "out.running"
     try:
-        _wait_for_rows(tmp_path / "contact.csv", 500)
+        _wait_for_rows(running / "contact.csv", 500)
         time.sleep(0.5)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
-    t, cols = read_stream(tmp_path / "contact.csv")
+    t, cols = read_stream(running / "contact.csv")
     assert len(t) > 500
     np.testing.assert_allclose(np.diff(t), 0.001, rtol=1e-9)     # complete, consecutive rows
     assert np.all(np.isfinite(cols["tool_force[0]"]))
+    rows = (running / "contact.csv").read_bytes()
+    # The dead run's lock is taken over with a note, its rows moved aside, not lost.
+    next_run = subprocess.run([sys.executable, "-m", "orchestration", "run", "virtual_wall", "--duration", "0.1",
+                               "--hosting", "in-process", "--quiet", "--no-vtu", "--out", str(out)],
+                              capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert next_run.returncode == 0, next_run.stderr
+    assert f"moved to {tmp_path / 'out.killed'}" in next_run.stderr
+    assert (tmp_path / "out.killed" / "contact.csv").read_bytes() == rows
+    assert json.loads((out / "summary.json").read_text())["status"] == "completed"
+    assert not running.exists() and not (tmp_path / "out.lock").exists()
 
 
 def test_sigterm_ends_the_run_with_a_summary(built, tmp_path):
-    proc = _start_long_run(tmp_path)
+    out = tmp_path / "out"
+    proc = _start_long_run(out)
     try:
-        _wait_for_rows(tmp_path / "contact.csv", 300)
+        _wait_for_rows(tmp_path / "out.running" / "contact.csv", 300)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 1
+    assert proc.returncode == 143  # 128 + SIGTERM, documented in `run --help`
     assert "SIGTERM" in err and "Traceback" not in err
-    summary = json.loads((tmp_path / "summary.json").read_text())
+    interrupted = tmp_path / "out.interrupted"
+    summary = json.loads((interrupted / "summary.json").read_text())
     assert summary["status"] == "interrupted"
-    t, _ = read_stream(tmp_path / "contact.csv")
+    assert summary["results"]["folder"] == str(interrupted)
+    assert not out.exists()  # nothing complete to keep: the partial run is beside, never in OUT
+    t, _ = read_stream(interrupted / "contact.csv")
     assert t[-1] == pytest.approx(summary["simulated_time_s"], abs=0.002)
     # no worker left behind
     time.sleep(0.5)
