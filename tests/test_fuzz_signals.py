@@ -37,6 +37,7 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from process_helpers import assert_no_process_left, group_members
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = "virtual_wall"
@@ -85,30 +86,6 @@ def wait_for_handlers(proc: subprocess.Popen, timeout: float = 30.0) -> None:
             return
         time.sleep(0.002)
     raise AssertionError("the run did not install its signal handlers")
-
-
-def group_members(pgid: int) -> list[str]:
-    """Processes still in the run's process group (its workers, the resource tracker)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2:].split()
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            found.append(f"{entry.name}: {cmdline[:120]}")
-    return found
-
-
-def assert_no_process_left(pgid: int, grace: float = 5.0) -> None:
-    deadline = time.monotonic() + grace
-    while group_members(pgid) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert group_members(pgid) == [], "processes of the run outlived it"
 
 
 def read_rows(path: Path) -> tuple[list[str], list[list[float]]]:

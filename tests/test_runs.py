@@ -3,7 +3,6 @@ job, pacing, and what a killed or interrupted run leaves behind."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -13,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from process_helpers import assert_no_process_left
 
 from orchestration.master import run_scene
 from orchestration.recording import read_stream
@@ -90,7 +90,8 @@ def test_realtime_pacing_counts_missed_deadlines(built, tmp_path):
 def _start_long_run(out: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "orchestration", "run", "virtual_wall", "--duration", "60",
                              "--hosting", "out-of-process", "--quiet", "--out", str(out)],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its process group: the run and its workers only
 
 
 def _wait_for_rows(path: Path, rows: int, timeout: float = 120.0) -> None:
@@ -150,10 +151,7 @@ def test_sigterm_ends_the_run_with_a_summary(built, tmp_path):
     assert not out.exists()  # nothing complete to keep: the partial run is beside, never in OUT
     t, _ = read_stream(interrupted / "contact.csv")
     assert t[-1] == pytest.approx(summary["simulated_time_s"], abs=0.002)
-    # no worker left behind
-    time.sleep(0.5)
-    leftover = subprocess.run(["pgrep", "-f", f"fmu-worker-.*{os.getpid()}"], capture_output=True)
-    assert leftover.returncode != 0 or not leftover.stdout.strip()
+    assert_no_process_left(proc.pid)  # no worker left behind
 
 
 def test_twenty_fresh_processes_run_a_short_scene_and_exit_normally(built, tmp_path):
