@@ -279,6 +279,7 @@ class Port:
     size: int
     minimum: float | None
     maximum: float | None
+    start: str | None  # as the model description gives it
 
 
 PROTOCOL_TYPES = {"Float64": "f64", "Int32": "i32", "UInt64": "u64", "Boolean": "bool", "String": "str"}
@@ -300,7 +301,7 @@ def ports(fmu: Path, structural: dict | None = None) -> dict[str, Port]:
             size *= int(d.start) if d.start is not None else sizes[d.variable.name]
         result[v.name] = Port(v.name, v.valueReference, PROTOCOL_TYPES[v.type], v.causality, v.variability, size,
                               float(v.min) if v.min is not None else None,
-                              float(v.max) if v.max is not None else None)
+                              float(v.max) if v.max is not None else None, v.start)
     return result
 
 

@@ -200,3 +200,106 @@ def test_refused_calls_inserted_in_a_legal_run_change_nothing(hosts, fmus, kind,
         assert read == expected  # the plain run's outputs, bit for bit
 
     case_runs()
+
+
+# ---- any sequence of calls -----------------------------------------------------------------------------
+#: Where each kind of call is legal (FMI 3.0 Co-Simulation without Event Mode; structural
+#: parameters fixed, so no Reconfiguration Mode), as tests/test_fmi_layer.py's table.
+ALIVE = {"Instantiated", "Configuration", "Initialization", "Step", "Terminated", "Error"}
+LEGAL = {
+    "enter_init": {"Instantiated"}, "exit_init": {"Initialization"}, "enter_config": {"Instantiated"},
+    "exit_config": {"Configuration"}, "step": {"Step"}, "terminate": {"Step"}, "reset": ALIVE,
+    "get": ALIVE - {"Instantiated"}, "set input": {"Instantiated", "Initialization", "Step"},
+    "set parameter": {"Instantiated", "Initialization"}, "set structural": {"Configuration"},
+    "get_state": ALIVE - {"Configuration"}, "set_state": ALIVE - {"Configuration"},
+    "free_state": ALIVE - {"Configuration"}, "roundtrip_state": ALIVE - {"Configuration"},
+}
+#: After fmi3OK: the mode the call leads to (None: unchanged).
+LEADS_TO = {"enter_init": "Initialization", "exit_init": "Step", "enter_config": "Configuration",
+            "exit_config": "Instantiated", "step": "Step", "terminate": "Terminated", "reset": "Instantiated"}
+
+
+@st.composite
+def call_sequences(draw, name: str, p: dict):
+    """instantiate, up to 30 calls of any kind with plausible or broken arguments, free."""
+    run = PLAIN_RUNS[name]
+    h = run.step
+    output = max((q for q in p.values() if q.type == "f64" and q.causality == "output"), key=lambda q: q.size)
+    parameters = [q for q in p.values() if q.causality == "parameter" and q.type in ("f64", "i32")
+                  and q.size == 1 and q.name in set(run.parameters) | {"internal_step"}]
+    structural = [q for q in p.values() if q.causality == "structuralParameter"]
+    input_name = next(iter(run.inputs))
+    choices = st.one_of(
+        st.sampled_from(["enter_init", "exit_init", "enter_config", "exit_config", "terminate", "reset",
+                         "get_state", "set_state", "free_state", "roundtrip_state", get_command(output),
+                         f"get f64 {output.size + 1} {output.vr}", "get f64 1 9999"]),
+        st.builds(lambda k, f: f"step {k * h * f!r} {h!r}", st.integers(0, 8), st.sampled_from([1.0, 1.0, 1.5])),
+        st.builds(lambda x: set_command(p[input_name], x), st.sampled_from([0.0, 1e-3, float("nan"), 1e300])),
+        st.builds(lambda q, f: set_command(q, [float(q.start) * f] if q.type == "f64" else [int(float(q.start) * f)]),
+                  st.sampled_from(parameters), st.sampled_from([1.0, 0.5, -1.0])),
+        st.builds(lambda q, v: set_command(q, [v]), st.sampled_from(structural),
+                  st.sampled_from([0, 10**12] + [int(run.structural.get(q.name, q.start)) for q in structural])),
+    )
+    return ["instantiate"] + draw(st.lists(choices, max_size=30)) + ["free"]
+
+
+def _kind_of(command: str, p_by_vr: dict) -> str:
+    words = command.split()
+    if words[0] == "set":
+        port = p_by_vr.get(int(words[3].split(",")[0]))
+        return {"input": "set input", "parameter": "set parameter",
+                "structuralParameter": "set structural"}.get(port.causality if port else "", "set input")
+    return words[0]
+
+
+def check_sequence(commands, answers, p_by_vr) -> None:
+    """Statuses against the legal-call table, with the modes the instance may be in followed call by call."""
+    modes, saved = {"Instantiated"}, None
+    for command, answer in zip(commands, answers):
+        errors = [m for s, m in answer.logs if s >= ERROR]
+        assert answer.status in (OK, WARNING, ERROR) or (answer.status == -1 and command in ("set_state",
+                                                                                           "roundtrip_state")), answer
+        if command in ("instantiate", "free"):
+            assert answer.status == OK, answer
+            continue
+        kind = _kind_of(command, p_by_vr)
+        if kind in LEGAL and not (modes & LEGAL[kind]):
+            assert answer.status == ERROR and errors, f"{command!r} in {modes} was not refused: {answer}"
+        if answer.status == ERROR:
+            assert errors, f"{command!r} returned fmi3Error without a reason"
+            if kind in ("exit_init", "step", "terminate", "reset", "set_state", "exit_config", "get",
+                        "roundtrip_state"):
+                modes = modes | {"Error"}  # a failure of the model (or of the arguments: the mode stays)
+        elif answer.status in (OK, WARNING):
+            if command.startswith("get f64"):
+                assert all(math.isfinite(float(x)) for x in answer.values), answer
+            if kind in LEADS_TO:
+                modes = {LEADS_TO[kind]}
+            elif kind == "get_state":
+                saved = set(modes)
+            elif kind == "set_state" and saved:
+                modes = set(saved)
+            elif kind == "free_state":
+                saved = None
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("name", FMUS)
+def test_any_call_sequence_is_answered_by_the_legal_call_table(hosts, fmus, kind, name):
+    """Random sequences (errors followed by more calls, resets, states restored into other modes...):
+    the host survives, a call illegal in every mode the instance may be in is refused with a reason,
+    no call returns fmi3Fatal or fmi3Discard, and no Float64 read after fmi3OK is NaN or infinite."""
+    p = ports(fmus[name], PLAIN_RUNS[name].structural)
+    p_by_vr = {q.vr: q for q in p.values()}
+    host = hosts[(kind, name)]
+    prefix = PLAIN_RUNS[name].configure(p) + PLAIN_RUNS[name].setup(p)  # the coarse Tissue mesh
+
+    @given(call_sequences(name, p))
+    def sequence_runs(commands):
+        commands = commands[:1] + prefix + commands[1:]
+        answers = host.run(commands)
+        assert all(a.status == OK for a in answers[1:1 + len(prefix)]), answers[:1 + len(prefix)]
+        check_sequence([c for c in commands[:1]] + commands[1 + len(prefix):], answers[:1] + answers[1 + len(prefix):],
+                       p_by_vr)
+
+    sequence_runs()
