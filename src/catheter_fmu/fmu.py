@@ -9,7 +9,7 @@ import numpy as np
 
 from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
 from .geometry import CenterlineCurve
-from .model import CatheterModel, CatheterParameters
+from .model import CatheterModel, CatheterParameterError, CatheterParameters
 
 #: Float64 parameters passed to CatheterParameters unchanged: (name, unit, description).
 FLOAT_PARAMETERS = [
@@ -88,6 +88,21 @@ VARIABLES = (
 )
 
 
+#: The model's names of the parameters the FMU exposes under other names (its messages name the
+#: FMU's variable, the one the user sets).
+MODEL_NAMES = {"centerline": "centerline_points", "n_segments": "n_tool_points - 1 (n_segments)"}
+
+
+def _in_fmu_names(message: str) -> str:
+    head, separator, rest = message.partition(": ")
+    for model_name, fmu_name in MODEL_NAMES.items():
+        if head == model_name:
+            return f"{fmu_name}{separator}{rest}"
+        if message.startswith(model_name + " "):
+            return fmu_name + message[len(model_name):]
+    return message
+
+
 class CatheterFmu:
     """Builds the catheter model from the parameters and steps it with the operator's inputs."""
 
@@ -100,7 +115,10 @@ class CatheterFmu:
             anti_windup=v.anti_windup,
             **{name: float(getattr(v, name)) for name, _, _ in FLOAT_PARAMETERS},
         )
-        params.validate(v.internal_step)
+        try:
+            params.validate(v.internal_step)
+        except CatheterParameterError as exc:
+            raise CatheterParameterError(_in_fmu_names(str(exc))) from None
         self.model = CatheterModel(params, dt=v.internal_step)
         self.model.reset(v.insertion, v.rotation)
         self.model.write_outputs_into(v.centerline_positions, v.tip_position)

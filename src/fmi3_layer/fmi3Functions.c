@@ -644,8 +644,19 @@ static int check_references(Instance *inst, const char *function, int type, cons
         total += v->count;
     }
     if (total != n_values) {
-        log_message(inst, fmi3Error, "%s: the %zu value reference(s) hold %zu value(s), but nValues = %zu", function,
-                    n_vrs, total, n_values);
+        char names[512] = "";
+        size_t used = 0;
+        for (size_t i = 0; i < n_vrs && used + 1 < sizeof names; i++) {
+            const Variable *v = &inst->variables[vrs[i]];
+            int written = i < 4 ? snprintf(names + used, sizeof names - used, "%s'%s' (%zu)", i ? ", " : "", v->name,
+                                           v->count)
+                                : snprintf(names + used, sizeof names - used, ", ...");
+            if (written < 0) break;
+            used += (size_t)written;
+            if (i >= 4) break;
+        }
+        log_message(inst, fmi3Error, "%s: the %zu value reference(s) hold %zu value(s), but nValues = %zu: %s",
+                    function, n_vrs, total, n_values, names);
         return 0;
     }
     return 1;

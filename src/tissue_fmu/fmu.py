@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._fmi import FmuDeclaration, Limit, calculated, input_port, output, parameter, structural
+from .errors import MeshError
 from .mesh import aaa_mesh, load_mesh
 from .model import TissueModel, TissueParameters
 
@@ -168,7 +169,10 @@ class TissueFmu:
         params = _parameters(v)
         params.validate()  # parameter errors before the (slower) mesh work
         if v.mesh_file:
-            mesh = load_mesh(v.mesh_file)
+            try:
+                mesh = load_mesh(v.mesh_file)
+            except MeshError as exc:  # named as the user knows it: the parameter they set
+                raise MeshError(f"mesh_file = {v.mesh_file!r}: {exc}") from None
             _check_element_count(mesh.n_tets, f"the mesh file {v.mesh_file!r}")
         else:
             resolution = {k: int(getattr(v, k)) for k in AAA_RESOLUTION}
