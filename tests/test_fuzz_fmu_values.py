@@ -198,3 +198,38 @@ def test_edge_values_give_a_clear_error_or_a_correct_result(hosts, fmus, mesh_fi
         check(commands, fuzzed, answers, all_names)
 
     values_run()
+
+
+# ---- the findings of issue 14, one by one (FMPy, this process) ------------------------------------------
+@pytest.mark.parametrize("name, settings, when, words", [
+    # silently absurd before the limit tables: 1e300 N/m rendered 3e298 N; an infinite tip force magnitude
+    ("Contact", {"stiffness": 1e300}, "set", ["'stiffness'", "1e+300", "above the maximum", "[0.001, 1000000] N/m"]),
+    ("Catheter", {"tip_force": [1e300, 0.0, 0.0]}, "set", ["'tip_force'", "above the maximum", "[-10000, 10000] N"]),
+    ("Tissue", {"active_radius": float("nan")}, "set", ["'active_radius'", "NaN"]),
+    ("Tissue", {"young_modulus": 1e300}, "set", ["'young_modulus'", "above the maximum", "[100, 10000000000] Pa"]),
+    # a MemoryError for a resolution of 100000; minutes of meshing for a product of plausible ones
+    ("Tissue", {"n_circumferential": 100000}, "init", ["n_circumferential = 100000", "above the maximum", "1024"]),
+    ("Tissue", {"n_circumferential": 1024, "n_axial": 4096}, "init", ["MAX_ELEMENTS", "coarser mesh"]),
+    # 104 s for 4 steps of automatic explicit substeps: refused up front, with the count and the way out
+    ("Tissue", {"integrator": "explicit", "young_modulus": 1e9}, "init",
+     ["substeps", "automatic substeps", "MAX_EXPLICIT_WORK", "implicit integrator"]),
+    ("Catheter", {"internal_step": 1e-9}, "set", ["'internal_step'", "below the minimum", "[1e-06, 10] s"]),
+])
+def test_issue_findings_are_refused_early_with_the_variable_and_the_limit(fmus, name, settings, when, words):
+    import time
+
+    from fmu_harness import fmu_instance
+
+    with fmu_instance(fmus[name]) as fmu:
+        start = time.monotonic()
+        items = list(settings.items())
+        for variable, value in items[:-1]:
+            fmu.set(variable, value)
+        variable, value = items[-1]
+        if when == "set":
+            fmu.expect_error(lambda: fmu.set(variable, value), *words)
+            fmu.initialize()  # nothing was set: the instance builds with its start values
+        else:
+            fmu.set(variable, value)
+            fmu.expect_error(fmu.initialize, *words)
+        assert time.monotonic() - start < 30.0

@@ -70,10 +70,13 @@ LIMITS = {
 #: Most tetrahedra a Tissue instance builds (generated or read): the 64x80x2 wall (61k tets) steps in
 #: about 36 ms on a 2-core machine; 1M tets need gigabytes for the tensors and the factorisation.
 MAX_ELEMENTS = 1_000_000
-#: Most explicit work per internal step, in substeps x active tetrahedra: 3e8 is about 5 s of computation
-#: per step on a 2-core machine (the default wall, 15k tets with automatic substeps: 9.5k substeps, 1.5e8,
-#: 2.7 s). A stiffer material or finer mesh needs the implicit integrator, not hours of substeps.
+#: Most explicit work per internal step, in substeps x (active tetrahedra + SUBSTEP_OVERHEAD_ELEMENTS):
+#: 3e8 is about 5 s of computation per step on a 2-core machine (18 ns per tetrahedron and substep: the
+#: default wall, 15k tets with automatic substeps, is 9.5k substeps, 1.6e8, 2.7 s). A stiffer material or a
+#: finer mesh needs the implicit integrator, not hours of substeps.
 MAX_EXPLICIT_WORK = 3e8
+#: A substep's fixed cost (about 13 us of Python and numpy calls, measured on a 192-tet mesh) in tetrahedra.
+SUBSTEP_OVERHEAD_ELEMENTS = 1000
 
 _defaults = TissueParameters()
 _n_nodes, _n_triangles = _default_surface_counts()
@@ -152,12 +155,14 @@ def _check_explicit_work(model: TissueModel, step: float) -> None:
     """Refuse an explicit integration whose substeps would take far longer than a step should."""
     substeps = model.integrator.substeps_for(step)  # raises for a given count below the stable one
     elements = int(model.active_elements.sum())
-    if substeps * elements > MAX_EXPLICIT_WORK:
+    work = substeps * (elements + SUBSTEP_OVERHEAD_ELEMENTS)
+    if work > MAX_EXPLICIT_WORK:
         automatic = "automatic " if model.params.substeps == "auto" else ""
         raise ValueError(
             f"substeps: the explicit integrator needs {substeps} {automatic}substeps per internal step of {step:.6g} s "
-            f"(critical time step {model.critical_time_step:.3g} s) on {elements} tetrahedra: {substeps * elements:.3g} "
-            f"substep-elements, more than MAX_EXPLICIT_WORK = {MAX_EXPLICIT_WORK:.3g} (about 5 s per step): use the "
+            f"(critical time step {model.critical_time_step:.3g} s) on {elements} tetrahedra: {work:.3g} "
+            f"substep-elements (SUBSTEP_OVERHEAD_ELEMENTS = {SUBSTEP_OVERHEAD_ELEMENTS} each for the substep itself), "
+            f"more than MAX_EXPLICIT_WORK = {MAX_EXPLICIT_WORK:.3g} (about 5 s per step): use fewer substeps, the "
             f"implicit integrator, a softer or denser material, or a coarser mesh")
 
 
