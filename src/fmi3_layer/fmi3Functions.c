@@ -9,7 +9,8 @@
  *   fmi3Error with "illegal call sequence" and the mode it was made in, and changes nothing.
  * - A call rejected for its arguments (unknown value reference, wrong number of values, a value
  *   that may not be set now, NaN, a Float64 outside the variable's limit from the FMU's limit
- *   table) returns fmi3Error, logs why and changes nothing, so the instance stays usable. A failure of the model itself (initialization, a step) puts the
+ *   table) returns fmi3Error, logs why and changes nothing, so the instance stays usable. A
+ *   failure of the model itself (initialization, a step) puts the
  *   instance into the Error mode: only getters, FMU state, fmi3Reset and fmi3FreeInstance remain.
  * - Python is entered with the GIL taken for the call, in a Python importer and in any other.
  * - A KeyboardInterrupt in the FMU's Python code (SIGINT while it runs) fails that call as
@@ -221,7 +222,7 @@ static int cb_counters(void *instance, void *data, uint64_t count) {
 /* The step exchange (a numpy array of STEP_IO_SIZE doubles owned by the runtime): fmi3DoStep writes
  * the arguments, status OK and all steps completed; the runtime's do_step writes a warning, or an
  * error and the internal steps it completed. A Python exception out of do_step is an error too. */
-enum { IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, IO_INTERRUPTED, STEP_IO_SIZE };
+enum { IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, STEP_IO_SIZE };
 
 static int cb_step_io(void *instance, void *data, uint64_t count) {
     Instance *inst = (Instance *)instance;
@@ -283,15 +284,19 @@ static const char BOOTSTRAP[] =
     "            raise\n"
     "    return module.instantiate(resources, model_identifier, token, *args)\n";
 
+/* What a call ended by a KeyboardInterrupt logs (after the function's name). */
+#define INTERRUPTED_REASON                                                                                 \
+    "interrupted: a KeyboardInterrupt (SIGINT, e.g. Ctrl-C) arrived while the FMU's Python code ran; the " \
+    "call was abandoned and the instance is in the Error mode (fmi3Reset or fmi3SetFMUState to go on); "   \
+    "the interrupt is handed back to the importer"
+
 /* The pending Python exception, logged as the failure of `function` (the GIL held). A
  * KeyboardInterrupt is logged as "interrupted" and marks the call for hand_back_interrupt. */
 static void log_python_error(Instance *inst, const char *function) {
     char reason[2048];
     if (python_error_text(reason, sizeof reason)) {
         inst->interrupted = 1;
-        log_message(inst, fmi3Error, "%s: interrupted: a KeyboardInterrupt (SIGINT, e.g. Ctrl-C) arrived while the "
-                    "FMU's Python code ran; the call was abandoned and the instance is in the Error mode (fmi3Reset "
-                    "or fmi3SetFMUState to go on); the interrupt is handed back to the importer", function);
+        log_message(inst, fmi3Error, "%s: " INTERRUPTED_REASON, function);
     } else {
         log_message(inst, fmi3Error, "%s: %s", function, reason);
     }
@@ -328,7 +333,6 @@ static void release(PyObject *object) {
 
 /* Build the model from the current parameters (exit of Initialization Mode, or a getter in it). */
 static fmi3Status build_model(Instance *inst, const char *function) {
-    inst->step_io[IO_INTERRUPTED] = 0.0;
     PyObject *result = CALL_MODEL(inst, function, "initialize", "(d)", inst->start_time);
     if (!result) {
         inst->mode = M_ERROR;
@@ -339,8 +343,6 @@ static fmi3Status build_model(Instance *inst, const char *function) {
     int failed = py.PyErr_Occurred() != NULL;
     if (failed) py.PyErr_Clear();
     py.Py_DecRef(result);
-    inst->interrupted = inst->step_io[IO_INTERRUPTED] != 0.0; /* the runtime caught and logged it */
-    hand_back_interrupt(inst);
     py.PyGILState_Release(gil);
     if (failed || !isfinite(step) || step == 0.0) {
         log_message(inst, fmi3Error, "%s: the model reported no valid internal step", function);
@@ -472,8 +474,7 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
             snprintf(reason, sizeof reason, "the FMU's runtime registered no step exchange (resources from "
                      "another build of the FMI layer?)");
         } else if (python_error_text(reason, sizeof reason)) {
-            snprintf(reason, sizeof reason, "interrupted: a KeyboardInterrupt (SIGINT, e.g. Ctrl-C) arrived while "
-                     "the FMU's Python code was loading; no instance was made; the interrupt is handed back");
+            snprintf(reason, sizeof reason, "%s (no instance was made)", INTERRUPTED_REASON);
             py.PyErr_SetInterrupt(); /* after the bootstrap: the importer's next bytecode raises it */
         }
         log_message(inst, fmi3Error, "fmi3InstantiateCoSimulation: %s", reason);
@@ -1007,12 +1008,10 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     io[IO_SUBSTEPS] = substeps;
     io[IO_STATUS] = fmi3OK;        /* the runtime writes a warning or a failure */
     io[IO_COMPLETED] = substeps;   /* and, on a failure, the steps it completed */
-    io[IO_INTERRUPTED] = 0.0;      /* and whether a KeyboardInterrupt ended the step */
     PyGILState_STATE gil = py.PyGILState_Ensure();
     PyObject *result = py.PyObject_CallNoArgs(inst->do_step);
     if (result) {
         py.Py_DecRef(result);
-        if (io[IO_INTERRUPTED] != 0.0) inst->interrupted = 1;
     } else {
         log_python_error(inst, "fmi3DoStep");
     }

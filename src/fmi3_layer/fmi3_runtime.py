@@ -18,14 +18,14 @@ as a status. (A NaN or infinity in an output after a step is caught by the C lay
 exception that escapes elsewhere is turned into ``fmi3Error`` by the C layer.
 
 A KeyboardInterrupt (SIGINT, e.g. Ctrl-C in a Python importer, lands in whatever Python code runs
-when the signal arrives, here too) fails the call as "interrupted", puts the instance into the Error
-mode and is handed back to the importer after the call returns (``IO_INTERRUPTED``, then
-``PyErr_SetInterrupt`` in the C layer), so a Python host still stops.
+when the signal arrives, here too) is the exception: it leaves ``do_step`` and ``initialize`` as it
+came, and the C layer fails the call as "interrupted" (the instance goes into the Error mode) and
+hands the interrupt back to the importer after the call returns, so a Python host still stops.
 
 Each FMU's limit table (``FmuDeclaration.limits``) is enforced in two places: the C layer refuses
 a Float64 value outside its limit in ``fmi3SetFloat64``; :meth:`RuntimeInstance.check_limits`
-checks every parameter (start values, integers and strings' neighbours included) before the
-model is built and every structural parameter before arrays are sized.
+checks every parameter (start values and integers included) before the model is built and every
+structural parameter before arrays are sized.
 """
 from __future__ import annotations
 
@@ -59,19 +59,17 @@ DTYPES = {"Float64": np.float64, "Int32": np.int32, "UInt64": np.uint64, "Boolea
 #: No array of an FMU may exceed this (a structural parameter of 10**9 is a typing error).
 MAX_ARRAY_BYTES = 1 << 30
 
-#: The step exchange with fmi3DoStep and initialization: t, h, internal steps (in); status, internal
-#: steps completed, whether a KeyboardInterrupt ended the call (out).
-IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, IO_INTERRUPTED = range(6)
-STEP_IO_SIZE = 6
-
-#: What a call ended by a KeyboardInterrupt logs (the C layer hands the interrupt back afterwards).
-INTERRUPTED = ("interrupted: a KeyboardInterrupt (SIGINT, e.g. Ctrl-C) arrived while the FMU's Python code ran; "
-               "the call was abandoned and the instance is in the Error mode (fmi3Reset or fmi3SetFMUState to go "
-               "on); the interrupt is handed back to the importer")
+#: The step exchange with fmi3DoStep: t, h, internal steps (in); status, internal steps completed (out).
+IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED = range(5)
 
 _REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
                              ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p, ctypes.c_double,
                              ctypes.c_double, ctypes.c_char_p)
+_COUNTERS = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64)
+_LOG = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_char_p)
+_GET_STRING = ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64)
+_SET_STRING = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_char_p)
+
 
 #: Float64 variables without a limit: any finite number (NaN and infinities are refused on set).
 _FINITE = (-sys.float_info.max, sys.float_info.max)
@@ -83,10 +81,6 @@ def _register_limit(variable) -> tuple[float, float, bytes]:
         return (*_FINITE, b"") if variable.type == "Float64" else (-math.inf, math.inf, b"")
     return (float(variable.limit.minimum), float(variable.limit.maximum),
             variable.limit.text(variable.unit).encode())
-_COUNTERS = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64)
-_LOG = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_char_p)
-_GET_STRING = ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64)
-_SET_STRING = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_char_p)
 
 
 # ---- the modelDescription.xml ---------------------------------------------------------------------
@@ -334,7 +328,7 @@ class RuntimeInstance:
         self.set_counts = np.zeros(len(self.variables), dtype=np.uint64)
         self.set_count_view = memoryview(self.set_counts)  # plain ints, read by Values.set_count
         counters(self._c, self.set_counts.ctypes.data, len(self.variables))
-        self._step_io = np.zeros(STEP_IO_SIZE)
+        self._step_io = np.zeros(5)
         self._io = memoryview(self._step_io)
         if step_io(self._c, self._step_io.ctypes.data, self._step_io.size) != 0:
             raise MemoryError("the FMI layer did not take the step exchange")
@@ -400,10 +394,8 @@ class RuntimeInstance:
         self._log(self._c, status, f"{self.model_name} instance '{self.instance_name}': {message}".encode())
 
     def _fail(self, call: str, exc: BaseException) -> None:
-        if isinstance(exc, KeyboardInterrupt):
-            self._io[IO_INTERRUPTED] = 1.0
-            self.log(ERROR, f"{call} {INTERRUPTED}")
-            return
+        if isinstance(exc, KeyboardInterrupt):  # the C layer logs it and hands it back to the importer
+            raise exc
         reason = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
         if os.environ.get("AAA_COSIM_FMU_TRACEBACK"):  # for the FMU's developers
             reason += "\n" + "".join(traceback.format_exception(exc))
@@ -438,7 +430,6 @@ class RuntimeInstance:
     def initialize(self, start_time: float) -> float:
         """Build the model from the parameters; its internal step, or -1 when it failed (logged)."""
         self._router.current.instance = self
-        self._io[IO_INTERRUPTED] = 0.0
         try:
             self.adapter = None
             self.check_limits("parameter")
@@ -449,8 +440,8 @@ class RuntimeInstance:
             self.adapter = self.declaration.adapter(self.values)
             return step
         except BaseException as exc:
-            self._fail("fmi3ExitInitializationMode (building the model)", exc)
             self.adapter = None
+            self._fail("fmi3ExitInitializationMode (building the model)", exc)
             return -1.0
         finally:
             self._router.current.instance = None

@@ -55,8 +55,9 @@ LIMITS = {
     **{name: Limit(1e-4, 1.0, "AAA generator lengths are millimetres to centimetres (DESIGN.md section 7); "
                               "beyond [0.1 mm, 1 m] the unit is wrong")
        for name in ("aorta_radius", "aneurysm_radius", "aneurysm_length", "segment_length", "wall_thickness")},
-    "n_circumferential": Limit(8, 1024, "elements around the vessel; beyond 1024 the element count limit "
-                                        "(MAX_ELEMENTS) is exceeded with any other resolution"),
+    "n_circumferential": Limit(8, 1024, "elements around the vessel: 8 at least for a round wall, 1024 (0.15 mm "
+                                        "around the 25 mm sac) finer than any use; the element count is limited "
+                                        "again by MAX_ELEMENTS"),
     "n_axial": Limit(1, 4096, "elements along the vessel; the element count is limited again by MAX_ELEMENTS"),
     "n_radial": Limit(1, 64, "elements across the 1.5 mm wall; 64 layers are 23 um thick"),
     "n_surface_nodes": Limit(3, 2_000_000, "surface nodes of a mesh within MAX_ELEMENTS"),
