@@ -154,13 +154,16 @@ def _check_element_count(count: int, what: str) -> None:
 
 def _check_explicit_work(model: TissueModel, step: float) -> None:
     """Refuse an explicit integration whose substeps would take far longer than a step should."""
-    substeps = model.integrator.substeps_for(step)  # raises for a given count below the stable one
+    integrator = model.integrator
+    # a given count below the stable one is refused by the first step (StabilityError), with its numbers
+    substeps = integrator.substeps_for(step) if integrator.substeps == "auto" else int(integrator.substeps)
     elements = int(model.active_elements.sum())
     work = substeps * (elements + SUBSTEP_OVERHEAD_ELEMENTS)
     if work > MAX_EXPLICIT_WORK:
         automatic = "automatic " if model.params.substeps == "auto" else ""
         raise ValueError(
-            f"substeps: the explicit integrator needs {substeps} {automatic}substeps per internal step of {step:.6g} s "
+            f"substeps: the explicit integrator {'needs' if automatic else 'is given'} {substeps} {automatic}substeps per "
+            f"internal step of {step:.6g} s "
             f"(critical time step {model.critical_time_step:.3g} s) on {elements} tetrahedra: {work:.3g} "
             f"substep-elements (SUBSTEP_OVERHEAD_ELEMENTS = {SUBSTEP_OVERHEAD_ELEMENTS} each for the substep itself), "
             f"more than MAX_EXPLICIT_WORK = {MAX_EXPLICIT_WORK:.3g} (about 5 s per step): use fewer substeps, the "
