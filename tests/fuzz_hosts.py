@@ -230,12 +230,12 @@ def serve_fmpy(fmu_path: str, work: str) -> None:
         elif command == "get_state":
             status = raw["fmi3GetFMUState"](slave.component, ctypes.byref(state))
         elif command == "set_state":
-            status = raw["fmi3SetFMUState"](slave.component, state) if state else -1
+            status = raw["fmi3SetFMUState"](slave.component, state)  # NULL when none is saved: refused
         elif command == "free_state":
             status = raw["fmi3FreeFMUState"](slave.component, ctypes.byref(state))
         elif command == "roundtrip_state":
             size = ctypes.c_size_t()
-            status = raw["fmi3SerializedFMUStateSize"](slave.component, state, ctypes.byref(size)) if state else -1
+            status = raw["fmi3SerializedFMUStateSize"](slave.component, state, ctypes.byref(size))
             if status == OK:
                 data = (fmi3Byte * size.value)()
                 status = raw["fmi3SerializeFMUState"](slave.component, state, data, size.value)

@@ -458,12 +458,12 @@ static int serve(const char *fmu, const char *work) {
         } else if (strcmp(command, "get_state") == 0) {
             status = fmi3GetFMUState(instance, &state);
         } else if (strcmp(command, "set_state") == 0) {
-            status = state ? fmi3SetFMUState(instance, state) : -1;
+            status = fmi3SetFMUState(instance, state); /* NULL when none is saved: refused */
         } else if (strcmp(command, "free_state") == 0) {
             status = fmi3FreeFMUState(instance, &state);
         } else if (strcmp(command, "roundtrip_state") == 0) { /* the saved state through its serialized bytes */
             size_t size = 0;
-            status = state ? fmi3SerializedFMUStateSize(instance, state, &size) : -1;
+            status = fmi3SerializedFMUStateSize(instance, state, &size);
             if (status == fmi3OK) {
                 fmi3Byte *bytes = malloc(size ? size : 1);
                 status = fmi3SerializeFMUState(instance, state, bytes, size);
