@@ -69,6 +69,15 @@ class FmuInstance:
             return np.array(getter(self.vr(name), nValues=n))
         return getter(self.vr(name))[0]
 
+    def outside_range(self, name, value) -> bool:
+        """Whether ``value`` lies outside the variable's declared min/max (the FMU refuses the set)."""
+        variable = self.vars[name]
+        if variable.type not in ("Float64", "Int32", "UInt64"):
+            return False
+        low = float(variable.min) if variable.min is not None else -np.inf
+        high = float(variable.max) if variable.max is not None else np.inf
+        return bool(np.any(~((np.asarray(value, dtype=float) >= low) & (np.asarray(value, dtype=float) <= high))))
+
     def initialize(self):
         self.slave.enterInitializationMode()
         self.slave.exitInitializationMode()

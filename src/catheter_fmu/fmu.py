@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fmi import FmuDeclaration, input_port, output, parameter, structural
+from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
 from .geometry import CenterlineCurve
-from .model import CatheterModel, CatheterParameters
+from .model import CatheterModel, CatheterParameterError, CatheterParameters
 
 #: Float64 parameters passed to CatheterParameters unchanged: (name, unit, description).
 FLOAT_PARAMETERS = [
@@ -28,6 +28,36 @@ FLOAT_PARAMETERS = [
     ("warning_hysteresis", "N", "hysteresis of the effort warning"),
 ]
 
+
+#: The plausible range of every number an importer gives this FMU, and why (a 6 Fr catheter in an
+#: aorta, DESIGN.md section 7). Values outside are refused (fmi3Error naming the variable, the value
+#: and this range); the model checks the relations between them (CatheterParameters.validate).
+LIMITS = {
+    "segment_length": Limit(1e-4, 0.1, "a catheter link is millimetres long (5 mm by default)"),
+    "radius": Limit(1e-4, 0.01, "catheters are 0.3-4 mm in radius (6 Fr: 1 mm)"),
+    "active_length": Limit(1e-4, 1.0, "the bending section is a few centimetres of the catheter"),
+    "bending_stiffness": Limit(1e-9, 1.0, "EI of a catheter is about 1e-5 to 1e-3 N m2; 1 N m2 is a steel rod"),
+    "passive_time_constant": Limit(0.0, 100.0, "the passive tip relaxes in milliseconds to seconds"),
+    "actuator_bandwidth": Limit(1e-3, 1e4, "actuators have millihertz to kilohertz bandwidths (and below the step's "
+                                           "Nyquist frequency, checked with the step)"),
+    "max_bend_angle": Limit(1e-6, 3.141592653589793, "beyond pi the active arc folds back on itself"),
+    "max_bend_rate": Limit(1e-6, 1e3, "an actuator bends at most a few radians per second"),
+    "kp": Limit(0.0, 1e3, "the regulator's gain is about 0.3 rad/N; 1000 rad/N saturates at any force"),
+    "ki": Limit(0.0, 1e5, "the regulator's integral gain is about 8 rad/(N s)"),
+    "force_threshold": Limit(1e-6, 1e3, "tip forces that matter are 0.1-10 N"),
+    "setpoint_fraction": Limit(1e-6, 1.0, "the regulated force is a fraction of the threshold"),
+    "warning_hysteresis": Limit(0.0, 1e3, "a fraction of force_threshold (checked against it)"),
+    "n_tool_points": Limit(2, 10_001, "catheter centerline points (segments + 1): 31 by default"),
+    "n_centerline_points": Limit(2, 1_000_000, "vertices of the vessel centerline polyline"),
+    "centerline_points": Limit(-100.0, 100.0, "the vessel lies within 100 m of the origin"),
+    "insertion": Limit(-100.0, 100.0, "an inserted length of metres; 100 m is no catheter"),
+    "rotation": Limit(-1e6, 1e6, "an accumulated rotation of up to 1e6 rad (160k turns)"),
+    "external_command": Limit(-1e3, 1e3, "an actuator command in radians (saturated at max_bend_angle)"),
+    "tip_force": Limit(-1e4, 1e4, "a contact force beyond 10 kN is 1000 times what the tip meets: a broken "
+                                  "connection or unit"),
+    "tip_stiffness": Limit(-1e9, 1e9, "the contact's stiffness is at most about 1e6 N/m (Contact's limit) times a "
+                                      "few facets"),
+}
 
 _defaults = CatheterParameters()
 _default_centerline = np.array(CenterlineCurve.aaa_default().vertices, dtype=float)
@@ -58,6 +88,21 @@ VARIABLES = (
 )
 
 
+#: The model's names of the parameters the FMU exposes under other names (its messages name the
+#: FMU's variable, the one the user sets).
+MODEL_NAMES = {"centerline": "centerline_points", "n_segments": "n_tool_points - 1 (n_segments)"}
+
+
+def _in_fmu_names(message: str) -> str:
+    head, separator, rest = message.partition(": ")
+    for model_name, fmu_name in MODEL_NAMES.items():
+        if head == model_name:
+            return f"{fmu_name}{separator}{rest}"
+        if message.startswith(model_name + " "):
+            return fmu_name + message[len(model_name):]
+    return message
+
+
 class CatheterFmu:
     """Builds the catheter model from the parameters and steps it with the operator's inputs."""
 
@@ -70,7 +115,10 @@ class CatheterFmu:
             anti_windup=v.anti_windup,
             **{name: float(getattr(v, name)) for name, _, _ in FLOAT_PARAMETERS},
         )
-        params.validate(v.internal_step)
+        try:
+            params.validate(v.internal_step)
+        except CatheterParameterError as exc:
+            raise CatheterParameterError(_in_fmu_names(str(exc))) from None
         self.model = CatheterModel(params, dt=v.internal_step)
         self.model.reset(v.insertion, v.rotation)
         self.model.write_outputs_into(v.centerline_positions, v.tip_position)
@@ -102,4 +150,5 @@ DECLARATION = FmuDeclaration(
     internal_step=0.001,
     variables=VARIABLES,
     adapter=CatheterFmu,
+    limits=LIMITS,
 )

@@ -26,7 +26,8 @@ notices (the array the step returned is not ``values.x``) and binds it again.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 #: Units used by the project's ports: name -> SI base-unit exponents (DESIGN.md section 4).
@@ -54,6 +55,36 @@ VARIABILITIES = ("constant", "fixed", "tunable", "discrete", "continuous")
 
 
 @dataclass(frozen=True)
+class Limit:
+    """The plausible range of a number an importer gives (a parameter, an input, an array size).
+
+    A value outside it cannot be meant (a typing error, a unit mistake, a broken connection) and
+    would give an absurd or endless computation, so the FMU refuses it with this reason: Float64
+    values in ``fmi3SetFloat64``, every parameter again at ``fmi3ExitInitializationMode`` and
+    structural parameters at ``fmi3ExitConfigurationMode``. The range becomes the variable's
+    ``min``/``max`` in modelDescription.xml and its description says why."""
+
+    minimum: float
+    maximum: float
+    why: str
+
+    def __post_init__(self):
+        if not (math.isfinite(self.minimum) and math.isfinite(self.maximum) and self.minimum <= self.maximum):
+            raise ValueError(f"a limit needs finite minimum <= maximum (got {self.minimum}, {self.maximum})")
+        if not self.why:
+            raise ValueError("a limit must say why (what a value beyond it would mean)")
+
+    def text(self, unit: str | None) -> str:
+        """``[min, max] unit: why``, as error messages and the description give it."""
+        return f"[{_shortest(self.minimum)}, {_shortest(self.maximum)}]{' ' + unit if unit else ''}: {self.why}"
+
+
+def _shortest(x: float) -> str:
+    """The shortest text that reads back as ``x`` (1e-06, not 9.9999999999999995e-07)."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e16 else repr(float(x))
+
+
+@dataclass(frozen=True)
 class Variable:
     """One variable of an FMU. ``shape`` holds ints and names of structural parameters."""
 
@@ -65,6 +96,8 @@ class Variable:
     unit: str | None = None
     description: str = ""
     shape: tuple = ()
+    #: the plausible range (from the FMU's limit table, FmuDeclaration.limits), or None
+    limit: Limit | None = None
 
     def __post_init__(self):
         if self.type not in TYPES:
@@ -77,11 +110,39 @@ class Variable:
             raise ValueError(f"{self.name}: unit {self.unit!r} is not declared in SI_UNITS")
         if self.shape and self.type == "String":
             raise ValueError(f"{self.name}: String arrays are not supported")
+        if self.limit is not None:
+            if self.type not in ("Float64", "Int32", "UInt64"):
+                raise ValueError(f"{self.name}: only numbers have limits (it is a {self.type})")
+            starts = () if self.start is None or callable(self.start) else _flat_numbers(self.start)
+            outside = [x for x in starts if not self.limit.minimum <= x <= self.limit.maximum]
+            if outside:
+                raise ValueError(f"{self.name}: start value {outside[0]!r} is outside its limit "
+                                 f"{self.limit.text(self.unit)}")
+
+    def outside_limit(self, value: float) -> str | None:
+        """Why ``value`` is refused ("above the maximum ..."), or None when it is within the limit."""
+        limit = self.limit
+        if limit is None or limit.minimum <= value <= limit.maximum:
+            return None
+        if value != value:
+            return "not a number"
+        side = "below the minimum" if value < limit.minimum else "above the maximum"
+        return f"{side} of its plausible range {limit.text(self.unit)}"
 
     @property
     def has_start(self) -> bool:
         """Parameters and inputs carry start values; outputs and calculated parameters do not."""
         return self.causality in ("parameter", "structuralParameter", "input")
+
+
+def _flat_numbers(value) -> list[float]:
+    """The numbers of a start value (a number or nested sequences of them)."""
+    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+        items = value.tolist() if hasattr(value, "tolist") else value
+        if not isinstance(items, (list, tuple)):
+            return [float(items)]
+        return [x for item in items for x in _flat_numbers(item)]
+    return [float(value)]
 
 
 def _type_of(value) -> str:
@@ -140,12 +201,28 @@ class FmuDeclaration:
     version: str = "0.2.0"
     author: str = "aaa-cosim"
     extra_units: tuple[str, ...] = field(default=())
+    #: the FMU's limit table: variable name -> its plausible range (one place for each limit)
+    limits: dict[str, Limit] = field(default_factory=dict)
+
+    def __post_init__(self):
+        names = {v.name for v in self.variables} | {"internal_step"}
+        unknown = sorted(set(self.limits) - names)
+        if unknown:
+            raise ValueError(f"{self.model_name}: limits for undeclared variables {unknown}")
 
     def all_variables(self) -> tuple[Variable, ...]:
-        """The declared variables after the two every FMU has: ``time`` and ``internal_step``."""
+        """The declared variables after the two every FMU has: ``time`` and ``internal_step``,
+        each with its limit from the table."""
         basics = (
             Variable("time", "Float64", "independent", "continuous", None, "s", "simulation time"),
             Variable("internal_step", "Float64", "parameter", "fixed", float(self.internal_step), "s",
-                     "the model's internal step; communication steps must be whole multiples of it"),
+                     "the model's internal step; communication steps must be whole multiples of it",
+                     limit=INTERNAL_STEP_LIMIT),
         )
-        return basics + tuple(self.variables)
+        return basics + tuple(replace(v, limit=self.limits[v.name]) if v.name in self.limits else v
+                              for v in self.variables)
+
+
+#: Every FMU's internal step: fmi3DoStep runs h / internal_step model steps in one call.
+INTERNAL_STEP_LIMIT = Limit(1e-6, 10.0, "below 1 us a step costs less than the FMI call around it; above 10 s "
+                                        "no model of this project is meant to step")

@@ -8,10 +8,15 @@
  * - ALLOWED below is the one table of which call is legal in which mode; an illegal call returns
  *   fmi3Error with "illegal call sequence" and the mode it was made in, and changes nothing.
  * - A call rejected for its arguments (unknown value reference, wrong number of values, a value
- *   that may not be set now, NaN) returns fmi3Error, logs why and changes nothing, so the
- *   instance stays usable. A failure of the model itself (initialization, a step) puts the
+ *   that may not be set now, NaN, a Float64 outside the variable's limit from the FMU's limit
+ *   table) returns fmi3Error, logs why and changes nothing, so the instance stays usable. A
+ *   failure of the model itself (initialization, a step) puts the
  *   instance into the Error mode: only getters, FMU state, fmi3Reset and fmi3FreeInstance remain.
  * - Python is entered with the GIL taken for the call, in a Python importer and in any other.
+ * - A KeyboardInterrupt in the FMU's Python code (SIGINT while it runs) fails that call as
+ *   "interrupted" (the instance goes into the Error mode) and is handed back with
+ *   PyErr_SetInterrupt once the FMU's Python work of the call is done, so a Python importer still
+ *   stops at its next bytecode (a non-Python importer keeps its own SIGINT handling).
  */
 #define _GNU_SOURCE
 #include <dlfcn.h>
@@ -94,6 +99,8 @@ typedef struct {
     void *data;      /* numeric: the model's numpy buffer; String: char*[count] owned here */
     size_t count;    /* number of scalar values (product of the dimensions) */
     char *name;
+    double min, max; /* Float64: the plausible range fmi3SetFloat64 enforces (any finite number by default) */
+    char *limit_text; /* "[min, max] unit: why", from the FMU's limit table; "" without a limit */
 } Variable;
 
 typedef struct {
@@ -113,6 +120,7 @@ typedef struct {
     double start_time, step_size;
     uint64_t steps_done;  /* whole internal steps since start_time: time without rounding drift */
     int built;            /* the model exists for the current parameter values */
+    int interrupted;      /* a KeyboardInterrupt ended a Python call of the current FMI call */
     char last_error[4096];
 } Instance;
 
@@ -160,7 +168,7 @@ static fmi3Status not_supported(fmi3Instance instance, const char *function, con
 
 /* ---- callbacks the Python runtime calls (through ctypes, GIL released) ---------------------------- */
 static int cb_register(void *instance, uint32_t vr, int type, int causality, int variability, void *data,
-                       uint64_t count, const char *name) {
+                       uint64_t count, const char *name, double min, double max, const char *limit_text) {
     Instance *inst = (Instance *)instance;
     if (vr >= inst->n_variables) {
         size_t n = (size_t)vr + 1;
@@ -188,6 +196,13 @@ static int cb_register(void *instance, uint32_t vr, int type, int causality, int
         free(v->name);
         v->name = strdup(name);
     }
+    if (!v->limit_text || strcmp(v->limit_text, limit_text ? limit_text : "") != 0) {
+        free(v->limit_text);
+        v->limit_text = strdup(limit_text ? limit_text : "");
+    }
+    if (!v->name || !v->limit_text) return -1;
+    v->min = min;
+    v->max = max;
     v->declared = 1;
     v->type = type;
     v->causality = causality;
@@ -269,17 +284,42 @@ static const char BOOTSTRAP[] =
     "            raise\n"
     "    return module.instantiate(resources, model_identifier, token, *args)\n";
 
+/* What a call ended by a KeyboardInterrupt logs (after the function's name). */
+#define INTERRUPTED_REASON                                                                                 \
+    "interrupted: a KeyboardInterrupt (SIGINT, e.g. Ctrl-C) arrived while the FMU's Python code ran; the " \
+    "call was abandoned and the instance is in the Error mode (fmi3Reset or fmi3SetFMUState to go on); "   \
+    "the interrupt is handed back to the importer"
+
+/* The pending Python exception, logged as the failure of `function` (the GIL held). A
+ * KeyboardInterrupt is logged as "interrupted" and marks the call for hand_back_interrupt. */
+static void log_python_error(Instance *inst, const char *function) {
+    char reason[2048];
+    if (python_error_text(reason, sizeof reason)) {
+        inst->interrupted = 1;
+        log_message(inst, fmi3Error, "%s: " INTERRUPTED_REASON, function);
+    } else {
+        log_message(inst, fmi3Error, "%s: %s", function, reason);
+    }
+}
+
+/* The interrupt a call swallowed goes back to the importer: the SIGINT flag is set again and a
+ * Python importer raises KeyboardInterrupt at its next bytecode (after this call returns; the
+ * FMU's Python work of this call is over). The GIL must be held. */
+static void hand_back_interrupt(Instance *inst) {
+    if (!inst->interrupted) return;
+    inst->interrupted = 0;
+    inst->mode = M_ERROR;
+    py.PyErr_SetInterrupt();
+}
+
 /* Call a method of the model object; its result (new reference), or NULL with the reason logged.
  * The GIL is taken for the call only. */
 #define CALL_MODEL(inst, function, method, ...)                                                   \
     ({                                                                                            \
         PyGILState_STATE gil_ = py.PyGILState_Ensure();                                            \
         PyObject *result_ = py.PyObject_CallMethod((inst)->model, method, __VA_ARGS__);           \
-        if (!result_) {                                                                           \
-            char reason_[2048];                                                                   \
-            python_error_text(reason_, sizeof reason_);                                           \
-            log_message(inst, fmi3Error, "%s: %s", function, reason_);                            \
-        }                                                                                         \
+        if (!result_) log_python_error(inst, function);                                           \
+        hand_back_interrupt(inst);                                                                \
         py.PyGILState_Release(gil_);                                                               \
         result_;                                                                                  \
     })
@@ -343,6 +383,7 @@ static void free_instance_memory(Instance *inst) {
             free(strings);
         }
         free(v->name);
+        free(v->limit_text);
     }
     free(inst->variables);
     free(inst->instance_name);
@@ -432,8 +473,9 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
         if (!py.PyErr_Occurred() && model) {
             snprintf(reason, sizeof reason, "the FMU's runtime registered no step exchange (resources from "
                      "another build of the FMI layer?)");
-        } else {
-            python_error_text(reason, sizeof reason);
+        } else if (python_error_text(reason, sizeof reason)) {
+            snprintf(reason, sizeof reason, "%s (no instance was made)", INTERRUPTED_REASON);
+            py.PyErr_SetInterrupt(); /* after the bootstrap: the importer's next bytecode raises it */
         }
         log_message(inst, fmi3Error, "fmi3InstantiateCoSimulation: %s", reason);
         if (do_step) py.Py_DecRef(do_step);
@@ -603,8 +645,19 @@ static int check_references(Instance *inst, const char *function, int type, cons
         total += v->count;
     }
     if (total != n_values) {
-        log_message(inst, fmi3Error, "%s: the %zu value reference(s) hold %zu value(s), but nValues = %zu", function,
-                    n_vrs, total, n_values);
+        char names[512] = "";
+        size_t used = 0;
+        for (size_t i = 0; i < n_vrs && used + 1 < sizeof names; i++) {
+            const Variable *v = &inst->variables[vrs[i]];
+            int written = i < 4 ? snprintf(names + used, sizeof names - used, "%s'%s' (%zu)", i ? ", " : "", v->name,
+                                           v->count)
+                                : snprintf(names + used, sizeof names - used, ", ...");
+            if (written < 0) break;
+            used += (size_t)written;
+            if (i >= 4) break;
+        }
+        log_message(inst, fmi3Error, "%s: the %zu value reference(s) hold %zu value(s), but nValues = %zu: %s",
+                    function, n_vrs, total, n_values, names);
         return 0;
     }
     return 1;
@@ -668,21 +721,57 @@ static fmi3Status get_values(fmi3Instance instance, const char *function, int ty
     return fmi3OK;
 }
 
-static int check_finite(Instance *inst, const char *function, const fmi3ValueReference vrs[], size_t n_vrs,
+/* Whether all `count` values lie in [min, max]; NaN compares false, so it is outside any range.
+ * One flag accumulated without branches, which the compiler vectorizes with AVX2 (the 1 kHz
+ * inputs are checked on every set; SSE2 code stays scalar: no unordered vector compares). */
+#define ALL_WITHIN_BODY                                                                          \
+    int64_t outside = 0;                                                                         \
+    for (size_t k = 0; k < count; k++) {                                                         \
+        double v = x[k];                                                                         \
+        outside |= (int64_t)(!(v >= min)) | (int64_t)(!(v <= max));                              \
+    }                                                                                            \
+    return !outside;
+
+static int all_within_default(const double *restrict x, size_t count, double min, double max) { ALL_WITHIN_BODY }
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+__attribute__((target("avx2"))) static int all_within_avx2(const double *restrict x, size_t count, double min,
+                                                            double max) {
+    ALL_WITHIN_BODY
+}
+#endif
+
+static int has_avx2(void);
+
+static int all_within(const double *x, size_t count, double min, double max) {
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    if (has_avx2()) return all_within_avx2(x, count, min, max);
+#endif
+    return all_within_default(x, count, min, max);
+}
+
+/* Every Float64 value within its variable's limit (any finite number for a variable without one);
+ * otherwise logs the variable, the value, the range and why, and returns 0. */
+static int check_limits(Instance *inst, const char *function, const fmi3ValueReference vrs[], size_t n_vrs,
                         const double *values) {
     size_t offset = 0;
     for (size_t i = 0; i < n_vrs; i++) {
         const Variable *v = &inst->variables[vrs[i]];
-        for (size_t k = 0; k < v->count; k++) {
-            double x = values[offset + k];
-            if (!isfinite(x)) {
-                log_message(inst, fmi3Error, "%s: '%s' value %zu is %s: the FMU accepts only finite numbers (check "
-                            "the source connected to this variable)", function, v->name, k,
-                            isnan(x) ? "NaN" : x > 0 ? "+infinity" : "-infinity");
-                return 0;
-            }
-        }
+        const double *x = values + offset;
         offset += v->count;
+        if (all_within(x, v->count, v->min, v->max)) continue;
+        size_t k = 0;
+        while (k < v->count && x[k] >= v->min && x[k] <= v->max) k++;
+        if (!isfinite(x[k])) {
+            log_message(inst, fmi3Error, "%s: '%s' value %zu is %s: the FMU accepts only finite numbers (check "
+                        "the source connected to this variable); nothing was set", function, v->name, k,
+                        isnan(x[k]) ? "NaN" : x[k] > 0 ? "+infinity" : "-infinity");
+        } else {
+            log_message(inst, fmi3Error, "%s: '%s' value %zu = %.16g is %s the %s of its plausible range %s; "
+                        "nothing was set", function, v->name, k, x[k], x[k] < v->min ? "below" : "above",
+                        x[k] < v->min ? "minimum" : "maximum", v->limit_text);
+        }
+        return 0;
     }
     return 1;
 }
@@ -694,7 +783,7 @@ static fmi3Status set_values(fmi3Instance instance, const char *function, int ty
     if (!check_references(inst, function, type, vrs, n_vrs, values, n_values)) return fmi3Error;
     for (size_t i = 0; i < n_vrs; i++)
         if (!settable(inst, function, &inst->variables[vrs[i]])) return fmi3Error;
-    if (type == T_FLOAT64 && !check_finite(inst, function, vrs, n_vrs, (const double *)values)) return fmi3Error;
+    if (type == T_FLOAT64 && !check_limits(inst, function, vrs, n_vrs, (const double *)values)) return fmi3Error;
     if (type == T_BOOLEAN) {
         const unsigned char *flags = (const unsigned char *)values;
         for (size_t k = 0; k < n_values; k++)
@@ -846,14 +935,22 @@ __attribute__((target("avx2"))) static int any_non_finite_avx2(const Bits64 *res
 }
 #endif
 
-static int any_non_finite(const Bits64 *bits, size_t count) {
+static int has_avx2(void) {
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
     static int avx2 = -1;
     if (avx2 < 0) { /* the same answer in any thread */
         __builtin_cpu_init();
         avx2 = __builtin_cpu_supports("avx2") ? 1 : 0;
     }
-    if (avx2) return any_non_finite_avx2(bits, count);
+    return avx2;
+#else
+    return 0;
+#endif
+}
+
+static int any_non_finite(const Bits64 *bits, size_t count) {
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    if (has_avx2()) return any_non_finite_avx2(bits, count);
 #endif
     return any_non_finite_default(bits, count);
 }
@@ -916,10 +1013,9 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     if (result) {
         py.Py_DecRef(result);
     } else {
-        char reason[2048];
-        python_error_text(reason, sizeof reason);
-        log_message(inst, fmi3Error, "fmi3DoStep: %s", reason);
+        log_python_error(inst, "fmi3DoStep");
     }
+    hand_back_interrupt(inst);
     py.PyGILState_Release(gil);
     if (!result) {
         inst->mode = M_ERROR;

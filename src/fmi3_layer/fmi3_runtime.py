@@ -14,8 +14,18 @@ the XML, the table and the start values come from one place (``<package>/fmu.py`
 
 Failures never escape as exceptions from ``do_step`` and ``initialize``: they are logged through
 the FMU's logger callback with the instance name, the call and the simulated time, and reported
-as a status. (A NaN or infinity in an output after a step is caught by the C layer.) Any exception (KeyboardInterrupt included) that escapes elsewhere is turned into
-``fmi3Error`` by the C layer.
+as a status. (A NaN or infinity in an output after a step is caught by the C layer.) Any
+exception that escapes elsewhere is turned into ``fmi3Error`` by the C layer.
+
+A KeyboardInterrupt (SIGINT, e.g. Ctrl-C in a Python importer, lands in whatever Python code runs
+when the signal arrives, here too) is the exception: it leaves ``do_step`` and ``initialize`` as it
+came, and the C layer fails the call as "interrupted" (the instance goes into the Error mode) and
+hands the interrupt back to the importer after the call returns, so a Python host still stops.
+
+Each FMU's limit table (``FmuDeclaration.limits``) is enforced in two places: the C layer refuses
+a Float64 value outside its limit in ``fmi3SetFloat64``; :meth:`RuntimeInstance.check_limits`
+checks every parameter (start values and integers included) before the model is built and every
+structural parameter before arrays are sized.
 """
 from __future__ import annotations
 
@@ -53,11 +63,24 @@ MAX_ARRAY_BYTES = 1 << 30
 IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED = range(5)
 
 _REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
-                             ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p)
+                             ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p, ctypes.c_double,
+                             ctypes.c_double, ctypes.c_char_p)
 _COUNTERS = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64)
 _LOG = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_char_p)
 _GET_STRING = ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64)
 _SET_STRING = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_char_p)
+
+
+#: Float64 variables without a limit: any finite number (NaN and infinities are refused on set).
+_FINITE = (-sys.float_info.max, sys.float_info.max)
+
+
+def _register_limit(variable) -> tuple[float, float, bytes]:
+    """(minimum, maximum, text) the C layer checks fmi3SetFloat64 against."""
+    if variable.limit is None:
+        return (*_FINITE, b"") if variable.type == "Float64" else (-math.inf, math.inf, b"")
+    return (float(variable.limit.minimum), float(variable.limit.maximum),
+            variable.limit.text(variable.unit).encode())
 
 
 # ---- the modelDescription.xml ---------------------------------------------------------------------
@@ -138,14 +161,22 @@ def model_description(declaration, model_identifier: str, token: str, generation
     for vr, v in enumerate(from_decl):
         attributes = [f"name={quoteattr(v.name)}", f'valueReference="{vr}"', f'causality="{v.causality}"',
                       f'variability="{v.variability}"']
-        if v.description:
-            attributes.append(f"description={quoteattr(v.description)}")
+        description = v.description
+        if v.limit is not None:
+            description = f"{description} (plausible range {v.limit.text(v.unit)})".lstrip()
+        if description:
+            attributes.append(f"description={quoteattr(description)}")
         if v.causality in ("parameter", "structuralParameter"):
             attributes.append('initial="exact"')
         elif v.causality == "calculatedParameter":
             attributes.append('initial="calculated"')
         if v.unit and v.type == "Float64":
             attributes.append(f"unit={quoteattr(v.unit)}")
+        if v.limit is not None:
+            low, high = v.limit.minimum, v.limit.maximum
+            if v.type != "Float64":
+                low, high = int(low), int(high)
+            attributes += [f'min="{low!r}"', f'max="{high!r}"']
         children = []
         for d in v.shape:
             children.append(f'<Dimension valueReference="{refs[d]}"/>' if isinstance(d, str)
@@ -318,7 +349,8 @@ class RuntimeInstance:
             if v.type == "String":
                 if reset or self.buffers[vr] is None:
                     self._register(self._c, vr, TYPE_CODES[v.type], CAUSALITY_CODES[v.causality],
-                                   VARIABILITY_CODES[v.variability], None, 1, v.name.encode())
+                                   VARIABILITY_CODES[v.variability], None, 1, v.name.encode(),
+                                   *_register_limit(v))
                     self._set_string(self._c, vr, 0, str(v.start if v.start is not None else "").encode())
                     self.buffers[vr] = np.zeros(0)  # marks "registered"
                 continue
@@ -341,7 +373,8 @@ class RuntimeInstance:
             self.buffers[vr] = buffer
             self.views[vr] = buffer.reshape(shape) if shape else buffer
             status = self._register(self._c, vr, TYPE_CODES[v.type], CAUSALITY_CODES[v.causality],
-                                    VARIABILITY_CODES[v.variability], buffer.ctypes.data, size, v.name.encode())
+                                    VARIABILITY_CODES[v.variability], buffer.ctypes.data, size, v.name.encode(),
+                                    *_register_limit(v))
             if status != 0:
                 raise MemoryError(f"the FMI layer could not register {v.name}")
         if changed:
@@ -361,16 +394,36 @@ class RuntimeInstance:
         self._log(self._c, status, f"{self.model_name} instance '{self.instance_name}': {message}".encode())
 
     def _fail(self, call: str, exc: BaseException) -> None:
+        if isinstance(exc, KeyboardInterrupt):  # the C layer logs it and hands it back to the importer
+            raise exc
         reason = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
         if os.environ.get("AAA_COSIM_FMU_TRACEBACK"):  # for the FMU's developers
             reason += "\n" + "".join(traceback.format_exception(exc))
         self.log(ERROR, f"{call} failed: {reason}")
 
+    # -- limits -----------------------------------------------------------------------------------------
+    def check_limits(self, causality: str) -> None:
+        """Raise ValueError naming the first variable of ``causality`` whose value is outside its limit
+        (variable, value, range and why), or a structural parameter no array could have."""
+        for vr, v in enumerate(self.variables):
+            if v.causality != causality or v.type == "String":
+                continue
+            values = self.buffers[vr]
+            if v.causality == "structuralParameter" and int(values[0]) > 10**9:
+                raise ValueError(f"{v.name} = {int(values[0])} is not a plausible array size")
+            if v.limit is None:
+                continue
+            low, high = v.limit.minimum, v.limit.maximum
+            inside = (values >= low) & (values <= high)
+            if not inside.all():
+                index = int(np.flatnonzero(~inside)[0])
+                value = values[index].item()
+                where = f"{v.name}[{index}]" if values.size > 1 else v.name
+                raise ValueError(f"{where} = {value!r}{' ' + v.unit if v.unit else ''} is {v.outside_limit(value)}")
+
     # -- calls from the C layer -------------------------------------------------------------------------
     def configure(self) -> None:
-        for vr, v in enumerate(self.variables):
-            if v.causality == "structuralParameter" and int(self.buffers[vr][0]) > 10**9:
-                raise ValueError(f"{v.name} = {int(self.buffers[vr][0])} is not a plausible array size")
+        self.check_limits("structuralParameter")
         self._allocate(reset=False)
         self.adapter = None
 
@@ -378,16 +431,17 @@ class RuntimeInstance:
         """Build the model from the parameters; its internal step, or -1 when it failed (logged)."""
         self._router.current.instance = self
         try:
+            self.adapter = None
+            self.check_limits("parameter")
             step = float(self.buffers[self.references["internal_step"]][0])
             if not (math.isfinite(step) and step > 0):
                 raise ValueError(f"internal_step must be a positive number of seconds (got {step})")
-            self.adapter = None
             self._time[0] = start_time
             self.adapter = self.declaration.adapter(self.values)
             return step
         except BaseException as exc:
-            self._fail("fmi3ExitInitializationMode (building the model)", exc)
             self.adapter = None
+            self._fail("fmi3ExitInitializationMode (building the model)", exc)
             return -1.0
         finally:
             self._router.current.instance = None

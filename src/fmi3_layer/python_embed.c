@@ -48,6 +48,7 @@ static int bind_all(void *handle, char *reason, size_t reason_size) {
     BIND(Py_IncRef);
     BIND(PyBytes_AsStringAndSize);
     BIND(PyBytes_FromStringAndSize);
+    BIND(PyErr_SetInterrupt);
 #undef BIND
     return 0;
 }
@@ -112,12 +113,12 @@ int python_ensure(const char *resource_dir, int *started, char *reason, size_t r
     return 0;
 }
 
-void python_error_text(char *buffer, size_t size) {
+int python_error_text(char *buffer, size_t size) {
     PyObject *type = NULL, *value = NULL, *traceback = NULL;
     buffer[0] = '\0';
     if (!py.PyErr_Occurred()) {
         snprintf(buffer, size, "unknown Python error");
-        return;
+        return 0;
     }
     py.PyErr_Fetch(&type, &value, &traceback);
     py.PyErr_NormalizeException(&type, &value, &traceback);
@@ -130,6 +131,7 @@ void python_error_text(char *buffer, size_t size) {
     PyObject *message = value ? py.PyObject_Str(value) : NULL;
     const char *message_text = message ? py.PyUnicode_AsUTF8(message) : NULL;
     /* a user's mistake (ValueError) reads as its message; anything else also names its type */
+    int interrupted = strcmp(type_name, "KeyboardInterrupt") == 0;
     if (strcmp(type_name, "ValueError") == 0)
         snprintf(buffer, size, "%s", message_text ? message_text : "(no message)");
     else
@@ -140,4 +142,5 @@ void python_error_text(char *buffer, size_t size) {
     if (value) py.Py_DecRef(value);
     if (traceback) py.Py_DecRef(traceback);
     py.PyErr_Clear();
+    return interrupted;
 }

@@ -45,6 +45,7 @@ typedef struct {
     void (*Py_IncRef)(PyObject *);
     int (*PyBytes_AsStringAndSize)(PyObject *, char **, Py_ssize_t *);
     PyObject *(*PyBytes_FromStringAndSize)(const char *, Py_ssize_t);
+    void (*PyErr_SetInterrupt)(void);
 } PythonApi;
 
 extern PythonApi py;
@@ -54,7 +55,8 @@ extern PythonApi py;
  * call started the interpreter (a non-Python importer). */
 int python_ensure(const char *resource_dir, int *started, char *reason, size_t reason_size);
 
-/* The pending Python exception as text ("TypeName: message"), cleared; the GIL must be held. */
-void python_error_text(char *buffer, size_t size);
+/* The pending Python exception as text ("TypeName: message"), cleared; the GIL must be held.
+ * Returns 1 when it was a KeyboardInterrupt (the caller hands the interrupt back), else 0. */
+int python_error_text(char *buffer, size_t size);
 
 #endif

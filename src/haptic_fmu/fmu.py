@@ -15,12 +15,39 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fmi import FmuDeclaration, input_port, output, parameter, structural
+from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
 from .model import LOCAL_POLICIES, ContactModel, ContactParameters
 
 DEFAULT_SURFACE_FILE = Path(__file__).resolve().parent / "default_tissue_surface.npz"
 
 _defaults = ContactParameters()
+
+#: The plausible range of every number an importer gives this FMU, and why (DESIGN.md section 7:
+#: haptic devices render at most 5000 N/m and 12 N). Values outside are refused (fmi3Error naming the
+#: variable, the value and this range) instead of rendering an absurd force.
+LIMITS = {
+    "stiffness": Limit(1e-3, 1e6, "devices render up to 5000 N/m and tissue penalties up to about 1e5 N/m; 1e6 N/m "
+                                  "pushes 1 kN back for 1 mm of penetration"),
+    "damping": Limit(0.0, 1e4, "the wall damping is 0 to about 10 N s/m; 1e4 N s/m brakes a 1 mm/s motion with 10 N"),
+    "penalty_length": Limit(1e-6, 0.1, "the non-linear laws' length scale is micrometres to centimetres"),
+    "tool_radius": Limit(0.0, 0.05, "a catheter is 0.3-4 mm in radius; a 5 cm tool fills the aorta"),
+    "margin": Limit(1e-6, 0.5, "the broad-phase margin exceeds the deepest penetration (millimetres); 0.5 m makes "
+                               "every triangle a candidate"),
+    "passivity_max_damping": Limit(1e-6, 1e4, "the passivity controller's damping stays below 2 m/T (about 20 N s/m "
+                                              "for a 10 g device at 1 kHz)"),
+    "compliance_force_lag": Limit(1, 1000, "frames between a haptic interval and the tissue frame showing its force: "
+                                           "2 with a Jacobi connection and an average"),
+    "n_surface_nodes": Limit(3, 2_000_000, "surface nodes of a tissue mesh the Tissue FMU builds"),
+    "n_surface_triangles": Limit(1, 4_000_000, "surface triangles of a tissue mesh the Tissue FMU builds"),
+    "n_tool_points": Limit(1, 10_000, "points of a catheter centerline (31 by default) or 1 for a probe"),
+    "max_patch_nodes": Limit(1, 256, "the compliance block is (3 n)^2 values solved by Tissue each frame"),
+    "tissue_positions": Limit(-100.0, 100.0, "positions of a body's tissue lie within 100 m of the origin"),
+    "tissue_velocities": Limit(-1e3, 1e3, "tissue moves at centimetres per second; 1 km/s is a diverged input"),
+    "compliance": Limit(-1.0, 1.0, "a wall's compliance is micrometres to millimetres per newton; 1 m/N is no wall"),
+    "tool_positions": Limit(-100.0, 100.0, "tool points lie within 100 m of the origin"),
+    "tool_velocities": Limit(-1e3, 1e3, "a hand moves a tool at most a few metres per second; 1 km/s is a broken "
+                                        "input"),
+}
 FLOAT_PARAMETERS = [
     ("stiffness", "N/m", "penalty stiffness k"),
     ("damping", "N.s/m", "penalty damping b"),
@@ -147,4 +174,5 @@ DECLARATION = FmuDeclaration(
     internal_step=0.001,
     variables=VARIABLES,
     adapter=ContactFmu,
+    limits=LIMITS,
 )

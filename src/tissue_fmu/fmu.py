@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fmi import FmuDeclaration, calculated, input_port, output, parameter, structural
+from ._fmi import FmuDeclaration, Limit, calculated, input_port, output, parameter, structural
+from .errors import MeshError
 from .mesh import aaa_mesh, load_mesh
 from .model import TissueModel, TissueParameters
 
@@ -28,6 +29,55 @@ def _default_surface_counts() -> tuple[int, int]:
     nodes, triangles = aaa_mesh(**AAA_SIZES, **AAA_RESOLUTION).surface()
     return int(nodes.shape[0]), int(triangles.shape[0])
 
+
+#: The plausible range of every number an importer gives this FMU, and why (DESIGN.md section 7 for
+#: the reference values). Values outside are refused (fmi3Error naming the variable, the value and
+#: this range) instead of being simulated into an absurd or endless result.
+LIMITS = {
+    "young_modulus": Limit(100.0, 1e10, "soft tissues are 1 kPa to 10 MPa and calcified plaque about 1 GPa; below "
+                                        "100 Pa or above 10 GPa is a unit mistake (kPa, MPa?)"),
+    "poisson_ratio": Limit(-0.99, 0.4999, "lambda = E nu / ((1 + nu)(1 - 2 nu)) grows without bound at 0.5 (0.4999 "
+                                          "is already 1667 E) and at -1; tissue is 0.45 to 0.49"),
+    "density": Limit(1.0, 1e5, "tissue is about 1000-1200 kg/m3; outside [1, 1e5] kg/m3 no material is meant"),
+    "viscosity": Limit(0.0, 1e7, "the Kelvin-Voigt wall viscosity is 0 to about 1e4 Pa s; 1e7 Pa s freezes the wall"),
+    "cg_tolerance": Limit(1e-15, 0.5, "a relative residual below 1e-15 is under round-off (never reached); above "
+                                      "0.5 the solve does not reduce the residual"),
+    "nonlinear_strain_threshold": Limit(0.0, 10.0, "a Green strain of 10 (a 4.6x stretch) is far past rupture of "
+                                                   "any wall"),
+    "active_radius": Limit(0.0, 10.0, "0 simulates the whole mesh; a region is at most the body (10 m)"),
+    "active_center": Limit(-10.0, 10.0, "coordinates of the region's centre lie within the body (10 m)"),
+    "substeps": Limit(0, 1_000_000, "explicit substeps per internal step (0: automatic); the work they cost is "
+                                    "limited again by MAX_EXPLICIT_WORK"),
+    "cg_max_iterations": Limit(1, 1_000_000, "Krylov iterations per implicit solve; 1e6 is beyond any converging "
+                                             "solve of these meshes (the iterations cost about 0.1 ms each)"),
+    "compliance_tolerance": Limit(1e-15, 0.5, "a relative residual below 1e-15 is under round-off; above 0.5 the "
+                                              "compliance is not solved for"),
+    **{name: Limit(1e-4, 1.0, "AAA generator lengths are millimetres to centimetres (DESIGN.md section 7); "
+                              "beyond [0.1 mm, 1 m] the unit is wrong")
+       for name in ("aorta_radius", "aneurysm_radius", "aneurysm_length", "segment_length", "wall_thickness")},
+    "n_circumferential": Limit(8, 1024, "elements around the vessel: 8 at least for a round wall, 1024 (0.15 mm "
+                                        "around the 25 mm sac) finer than any use; the element count is limited "
+                                        "again by MAX_ELEMENTS"),
+    "n_axial": Limit(1, 4096, "elements along the vessel; the element count is limited again by MAX_ELEMENTS"),
+    "n_radial": Limit(1, 64, "elements across the 1.5 mm wall; 64 layers are 23 um thick"),
+    "n_surface_nodes": Limit(3, 2_000_000, "surface nodes of a mesh within MAX_ELEMENTS"),
+    "n_surface_triangles": Limit(1, 4_000_000, "surface triangles of a mesh within MAX_ELEMENTS"),
+    "n_patch_nodes": Limit(1, 256, "the compliance block is (3 n)^2 values, solved column by column each frame: "
+                                   "256 nodes are 590k values and 768 solves"),
+    "contact_force": Limit(-1e4, 1e4, "a nodal force beyond 10 kN is 1000 times what a catheter or a haptic device "
+                                      "applies (12 N): a broken connection or unit"),
+}
+
+#: Most tetrahedra a Tissue instance builds (generated or read): the 64x80x2 wall (61k tets) steps in
+#: about 36 ms on a 2-core machine; 1M tets need gigabytes for the tensors and the factorisation.
+MAX_ELEMENTS = 1_000_000
+#: Most explicit work per internal step, in substeps x (active tetrahedra + SUBSTEP_OVERHEAD_ELEMENTS):
+#: 3e8 is about 5 s of computation per step on a 2-core machine (18 ns per tetrahedron and substep: the
+#: default wall, 15k tets with automatic substeps, is 9.5k substeps, 1.6e8, 2.7 s). A stiffer material or a
+#: finer mesh needs the implicit integrator, not hours of substeps.
+MAX_EXPLICIT_WORK = 3e8
+#: A substep's fixed cost (about 13 us of Python and numpy calls, measured on a 192-tet mesh) in tetrahedra.
+SUBSTEP_OVERHEAD_ELEMENTS = 1000
 
 _defaults = TissueParameters()
 _n_nodes, _n_triangles = _default_surface_counts()
@@ -43,7 +93,7 @@ VARIABLES = (
     parameter("cg_tolerance", float(_defaults.cg_tolerance), "relative residual of the implicit Krylov solve"),
     parameter("nonlinear_strain_threshold", float(_defaults.nonlinear_strain_threshold),
               "Green strain above which ETMM corrects an element"),
-    parameter("active_radius", 0.0, "radius of the active region around active_center (<= 0: whole mesh)", "m"),
+    parameter("active_radius", 0.0, "radius of the active region around active_center (0: whole mesh)", "m"),
     parameter("active_center", np.zeros(3), "centre of the active region", "m", shape=(3,)),
     parameter("law", str(_defaults.law), "material law: linear, etmm or hyperelastic"),
     parameter("integrator", str(_defaults.integrator), "implicit (backward Euler + CG) or explicit (symplectic Euler)"),
@@ -96,6 +146,30 @@ def _parameters(v) -> TissueParameters:
     )
 
 
+def _check_element_count(count: int, what: str) -> None:
+    if count > MAX_ELEMENTS:
+        raise ValueError(f"{what} is {count} tetrahedra, more than MAX_ELEMENTS = {MAX_ELEMENTS} (gigabytes of "
+                         f"tensors and factorisation, minutes per step): use a coarser mesh")
+
+
+def _check_explicit_work(model: TissueModel, step: float) -> None:
+    """Refuse an explicit integration whose substeps would take far longer than a step should."""
+    integrator = model.integrator
+    # a given count below the stable one is refused by the first step (StabilityError), with its numbers
+    substeps = integrator.substeps_for(step) if integrator.substeps == "auto" else int(integrator.substeps)
+    elements = int(model.active_elements.sum())
+    work = substeps * (elements + SUBSTEP_OVERHEAD_ELEMENTS)
+    if work > MAX_EXPLICIT_WORK:
+        automatic = "automatic " if model.params.substeps == "auto" else ""
+        raise ValueError(
+            f"substeps: the explicit integrator {'needs' if automatic else 'is given'} {substeps} {automatic}substeps per "
+            f"internal step of {step:.6g} s "
+            f"(critical time step {model.critical_time_step:.3g} s) on {elements} tetrahedra: {work:.3g} "
+            f"substep-elements (SUBSTEP_OVERHEAD_ELEMENTS = {SUBSTEP_OVERHEAD_ELEMENTS} each for the substep itself), "
+            f"more than MAX_EXPLICIT_WORK = {MAX_EXPLICIT_WORK:.3g} (about 5 s per step): use fewer substeps, the "
+            f"implicit integrator, a softer or denser material, or a coarser mesh")
+
+
 class TissueFmu:
     """Builds the tissue model from the parameters and steps it under the contact forces."""
 
@@ -104,11 +178,20 @@ class TissueFmu:
         params = _parameters(v)
         params.validate()  # parameter errors before the (slower) mesh work
         if v.mesh_file:
-            mesh = load_mesh(v.mesh_file)
+            try:
+                mesh = load_mesh(v.mesh_file)
+            except MeshError as exc:  # named as the user knows it: the parameter they set
+                raise MeshError(f"mesh_file = {v.mesh_file!r}: {exc}") from None
+            _check_element_count(mesh.n_tets, f"the mesh file {v.mesh_file!r}")
         else:
-            mesh = aaa_mesh(**{k: float(getattr(v, k)) for k in AAA_SIZES},
-                            **{k: int(getattr(v, k)) for k in AAA_RESOLUTION})
+            resolution = {k: int(getattr(v, k)) for k in AAA_RESOLUTION}
+            _check_element_count(6 * resolution["n_circumferential"] * resolution["n_axial"] * resolution["n_radial"],
+                                 "6 x n_circumferential x n_axial x n_radial = 6 x {n_circumferential} x {n_axial} x "
+                                 "{n_radial}".format(**resolution))
+            mesh = aaa_mesh(**{k: float(getattr(v, k)) for k in AAA_SIZES}, **resolution)
         model = TissueModel(mesh, params)
+        if params.integrator == "explicit":
+            _check_explicit_work(model, v.internal_step)
         if (model.n_surface, len(model.surface_triangles)) != (v.n_surface_nodes, v.n_surface_triangles):
             raise ValueError(
                 f"the mesh has {model.n_surface} surface nodes and {len(model.surface_triangles)} surface "
@@ -172,4 +255,5 @@ DECLARATION = FmuDeclaration(
     internal_step=1.0 / 30.0,
     variables=VARIABLES,
     adapter=TissueFmu,
+    limits=LIMITS,
 )

@@ -13,6 +13,17 @@
  *   --misuse                   also make calls that must be refused (fmi3DoStep and fmi3Terminate before
  *                              initialization, a NaN input halfway) and check they return fmi3Error
  * Exit status 0 when every call succeeded and every misuse was refused.
+ *
+ * usage: fmu_host --serve FMU WORKDIR
+ *   runs the FMI calls read from stdin, one a line, and answers each on stdout (the fuzzers'
+ *   scripted sequences, tests/fuzz_hosts.py, which speaks the same protocol through FMPy):
+ *     instantiate | free | enter_init | exit_init | enter_config | exit_config | terminate | reset
+ *     step T H | set TYPE N VR[,VR..] V.. | get TYPE N VR[,VR..]
+ *     get_state | set_state | free_state | roundtrip_state | quit
+ *   TYPE is f64, i32, u64, bool or str (strings percent-encoded); N is nValues (the buffer always
+ *   holds at least N values). Each answer is the lines the FMU logged during the call,
+ *   "L <status> <message>", then "R <status> [values]" (values of a get that returned OK or
+ *   Warning; lastSuccessfulTime of a step). Exit status 0 after "quit" or the end of input.
  */
 #include <dlfcn.h>
 #include <errno.h>
@@ -166,7 +177,10 @@ static void logger(fmi3InstanceEnvironment env, fmi3Status status, fmi3String ca
 #define CHECK(call) do { fmi3Status s_ = (call); if (s_ > fmi3Warning) { \
     printf("run ended: %s returned %d\n", #call, s_); ended = s_; goto end; } } while (0)
 
+static int serve(const char *fmu, const char *work);
+
 int main(int argc, char **argv) {
+    if (argc == 4 && strcmp(argv[1], "--serve") == 0) return serve(argv[2], argv[3]);
     if (argc < 5) die("usage: fmu_host FMU WORKDIR STEPS STEP_SIZE [--input N:C=V] [--output N:C] [--state]", NULL);
     const char *fmu = argv[1], *work = argv[2];
     long steps = strtol(argv[3], NULL, 10);
@@ -318,4 +332,211 @@ end:
     if (misuse) printf("misuse refused: %d of %d\n", refused, expected);
     /* the logger counted the provoked errors too: only unexpected ones fail the run */
     return failures - refused != 0 || refused != expected ? 4 : 0;
+}
+
+/* ---- --serve: scripted call sequences from stdin --------------------------------------------------- */
+static void serve_logger(fmi3InstanceEnvironment env, fmi3Status status, fmi3String category, fmi3String message) {
+    (void)env; (void)category;
+    printf("L %d ", (int)status);
+    for (const char *c = message ? message : ""; *c; c++) putchar(*c == '\n' || *c == '\r' ? ' ' : *c);
+    putchar('\n');
+}
+
+static void print_encoded(const char *text) {
+    putchar(' ');
+    if (!*text) { fputs("%", stdout); return; } /* "%" alone: the empty string */
+    for (const unsigned char *c = (const unsigned char *)text; *c; c++) {
+        if ((*c >= '0' && *c <= '9') || (*c >= 'a' && *c <= 'z') || (*c >= 'A' && *c <= 'Z') || strchr("-_.~/", *c))
+            putchar(*c);
+        else
+            printf("%%%02X", *c);
+    }
+}
+
+static char *decode(const char *token) {
+    char *out = malloc(strlen(token) + 1), *o = out;
+    if (!out) die("out of memory", NULL);
+    if (strcmp(token, "%") == 0) { *o = '\0'; return out; }
+    for (const char *c = token; *c; c++) {
+        if (*c == '%' && c[1] && c[2]) {
+            char hex[3] = {c[1], c[2], 0};
+            *o++ = (char)strtol(hex, NULL, 16);
+            c += 2;
+        } else {
+            *o++ = *c;
+        }
+    }
+    *o = '\0';
+    return out;
+}
+
+#define SERVE_LOAD(name) name##TYPE *name = (name##TYPE *)dlsym(library, #name); if (!name) die("missing symbol", #name)
+
+static int serve(const char *fmu, const char *work) {
+    mkdir(work, 0755);
+    extract(fmu, work);
+    char path[4096], token[256], identifier[256], resources[4096];
+    snprintf(path, sizeof path, "%s/modelDescription.xml", work);
+    char *description = read_text(path);
+    attribute(description, "<fmiModelDescription", "instantiationToken", token, sizeof token);
+    attribute(description, "<CoSimulation", "modelIdentifier", identifier, sizeof identifier);
+    snprintf(path, sizeof path, "%s/binaries/x86_64-linux/%s.so", work, identifier);
+    void *library = dlopen(path, RTLD_NOW | RTLD_LOCAL);
+    if (!library) die("cannot load", dlerror());
+    snprintf(resources, sizeof resources, "%s/resources/", work);
+    SERVE_LOAD(fmi3InstantiateCoSimulation);
+    SERVE_LOAD(fmi3FreeInstance);
+    SERVE_LOAD(fmi3EnterInitializationMode);
+    SERVE_LOAD(fmi3ExitInitializationMode);
+    SERVE_LOAD(fmi3EnterConfigurationMode);
+    SERVE_LOAD(fmi3ExitConfigurationMode);
+    SERVE_LOAD(fmi3Terminate);
+    SERVE_LOAD(fmi3Reset);
+    SERVE_LOAD(fmi3DoStep);
+    SERVE_LOAD(fmi3SetFloat64);
+    SERVE_LOAD(fmi3GetFloat64);
+    SERVE_LOAD(fmi3SetInt32);
+    SERVE_LOAD(fmi3GetInt32);
+    SERVE_LOAD(fmi3SetUInt64);
+    SERVE_LOAD(fmi3GetUInt64);
+    SERVE_LOAD(fmi3SetBoolean);
+    SERVE_LOAD(fmi3GetBoolean);
+    SERVE_LOAD(fmi3SetString);
+    SERVE_LOAD(fmi3GetString);
+    SERVE_LOAD(fmi3GetFMUState);
+    SERVE_LOAD(fmi3SetFMUState);
+    SERVE_LOAD(fmi3FreeFMUState);
+    SERVE_LOAD(fmi3SerializedFMUStateSize);
+    SERVE_LOAD(fmi3SerializeFMUState);
+    SERVE_LOAD(fmi3DeserializeFMUState);
+    fmi3Instance instance = NULL;
+    fmi3FMUState state = NULL;
+    char *line = NULL;
+    size_t capacity = 0;
+    while (getline(&line, &capacity, stdin) > 0) {
+        char *save = NULL, *command = strtok_r(line, " \t\r\n", &save);
+        if (!command) continue;
+        if (strcmp(command, "quit") == 0) break;
+        int status = 0;
+        if (strcmp(command, "instantiate") == 0) {
+            if (!instance)
+                instance = fmi3InstantiateCoSimulation("fuzz", token, resources, fmi3False, fmi3True, fmi3False,
+                                                       fmi3False, NULL, 0, NULL, serve_logger, NULL);
+            printf("R %d\n", instance ? 0 : 3);
+            fflush(stdout);
+            continue;
+        }
+        if (!instance) { /* the scripts never call an instance that does not exist (the importer's bug) */
+            printf("R -1 no instance\n");
+            fflush(stdout);
+            continue;
+        }
+        if (strcmp(command, "free") == 0) {
+            if (state) fmi3FreeFMUState(instance, &state);
+            fmi3FreeInstance(instance);
+            instance = NULL;
+        } else if (strcmp(command, "enter_init") == 0) {
+            status = fmi3EnterInitializationMode(instance, fmi3False, 0.0, 0.0, fmi3False, 0.0);
+        } else if (strcmp(command, "exit_init") == 0) {
+            status = fmi3ExitInitializationMode(instance);
+        } else if (strcmp(command, "enter_config") == 0) {
+            status = fmi3EnterConfigurationMode(instance);
+        } else if (strcmp(command, "exit_config") == 0) {
+            status = fmi3ExitConfigurationMode(instance);
+        } else if (strcmp(command, "terminate") == 0) {
+            status = fmi3Terminate(instance);
+        } else if (strcmp(command, "reset") == 0) {
+            status = fmi3Reset(instance);
+        } else if (strcmp(command, "step") == 0) {
+            double t = strtod(strtok_r(NULL, " ", &save), NULL), h = strtod(strtok_r(NULL, " \n", &save), NULL);
+            fmi3Boolean event = 0, terminate = 0, early = 0;
+            fmi3Float64 last = -1.0;
+            status = fmi3DoStep(instance, t, h, fmi3True, &event, &terminate, &early, &last);
+            printf("R %d %.17g\n", status, last);
+            fflush(stdout);
+            continue;
+        } else if (strcmp(command, "get_state") == 0) {
+            status = fmi3GetFMUState(instance, &state);
+        } else if (strcmp(command, "set_state") == 0) {
+            status = fmi3SetFMUState(instance, state); /* NULL when none is saved: refused */
+        } else if (strcmp(command, "free_state") == 0) {
+            status = fmi3FreeFMUState(instance, &state);
+        } else if (strcmp(command, "roundtrip_state") == 0) { /* the saved state through its serialized bytes */
+            size_t size = 0;
+            status = fmi3SerializedFMUStateSize(instance, state, &size);
+            if (status == fmi3OK) {
+                fmi3Byte *bytes = malloc(size ? size : 1);
+                status = fmi3SerializeFMUState(instance, state, bytes, size);
+                if (status == fmi3OK) status = fmi3FreeFMUState(instance, &state);
+                if (status == fmi3OK) status = fmi3DeserializeFMUState(instance, bytes, size, &state);
+                free(bytes);
+            }
+        } else if (strcmp(command, "set") == 0 || strcmp(command, "get") == 0) {
+            int set = command[0] == 's';
+            const char *type = strtok_r(NULL, " ", &save);
+            size_t n = strtoul(strtok_r(NULL, " ", &save), NULL, 10);
+            char *refs = strtok_r(NULL, " \n", &save);
+            fmi3ValueReference vrs[64];
+            size_t n_vrs = 0;
+            for (char *r_save = NULL, *r = strtok_r(refs, ",", &r_save); r && n_vrs < 64; r = strtok_r(NULL, ",", &r_save))
+                vrs[n_vrs++] = (fmi3ValueReference)strtoul(r, NULL, 10);
+            size_t capacity_values = n ? n : 1, given = 0;
+            double *f64 = calloc(capacity_values, sizeof(double));
+            int32_t *i32 = calloc(capacity_values, sizeof(int32_t));
+            uint64_t *u64 = calloc(capacity_values, sizeof(uint64_t));
+            fmi3Boolean *flags = calloc(capacity_values, sizeof(fmi3Boolean));
+            fmi3String *strings = calloc(capacity_values, sizeof(fmi3String));
+            char **owned = calloc(capacity_values, sizeof(char *));
+            if (!f64 || !i32 || !u64 || !flags || !strings || !owned) die("out of memory", NULL);
+            for (char *v = set ? strtok_r(NULL, " \n", &save) : NULL; v && given < capacity_values;
+                 v = strtok_r(NULL, " \n", &save), given++) {
+                f64[given] = strtod(v, NULL);
+                i32[given] = (int32_t)strtoll(v, NULL, 10);
+                u64[given] = strtoull(v, NULL, 10);
+                flags[given] = (fmi3Boolean)strtol(v, NULL, 10);
+                strings[given] = owned[given] = decode(v);
+            }
+            for (size_t k = given; k < capacity_values; k++) strings[k] = ""; /* never a NULL pointer */
+            if (strcmp(type, "f64") == 0) {
+                status = set ? fmi3SetFloat64(instance, vrs, n_vrs, f64, n) : fmi3GetFloat64(instance, vrs, n_vrs, f64, n);
+            } else if (strcmp(type, "i32") == 0) {
+                status = set ? fmi3SetInt32(instance, vrs, n_vrs, i32, n) : fmi3GetInt32(instance, vrs, n_vrs, i32, n);
+            } else if (strcmp(type, "u64") == 0) {
+                status = set ? fmi3SetUInt64(instance, vrs, n_vrs, u64, n) : fmi3GetUInt64(instance, vrs, n_vrs, u64, n);
+            } else if (strcmp(type, "bool") == 0) {
+                status = set ? fmi3SetBoolean(instance, vrs, n_vrs, flags, n)
+                             : fmi3GetBoolean(instance, vrs, n_vrs, flags, n);
+            } else {
+                status = set ? fmi3SetString(instance, vrs, n_vrs, strings, n)
+                             : fmi3GetString(instance, vrs, n_vrs, strings, n);
+            }
+            printf("R %d", status);
+            if (!set && status <= fmi3Warning) {
+                for (size_t k = 0; k < n; k++) {
+                    if (strcmp(type, "f64") == 0) printf(" %.17g", f64[k]);
+                    else if (strcmp(type, "i32") == 0) printf(" %d", i32[k]);
+                    else if (strcmp(type, "u64") == 0) printf(" %llu", (unsigned long long)u64[k]);
+                    else if (strcmp(type, "bool") == 0) printf(" %d", (int)flags[k]);
+                    else print_encoded(strings[k] ? strings[k] : "");
+                }
+            }
+            printf("\n");
+            fflush(stdout);
+            for (size_t k = 0; k < given; k++) free(owned[k]);
+            free(f64); free(i32); free(u64); free(flags); free(strings); free(owned);
+            continue;
+        } else {
+            die("unknown command", command);
+        }
+        printf("R %d\n", status);
+        fflush(stdout);
+    }
+    if (instance) {
+        if (state) fmi3FreeFMUState(instance, &state);
+        fmi3FreeInstance(instance);
+    }
+    free(line);
+    dlclose(library);
+    free(description);
+    return 0;
 }
