@@ -1,6 +1,7 @@
 """Shared fixtures: the real FMUs, built once per test session from this checkout."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,13 @@ settings.register_profile("ci", max_examples=25, deadline=None, derandomize=True
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 settings.register_profile("long", max_examples=1000, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-settings.load_profile("ci")
+# Any other number of cases per fuzz test: AAA_FUZZ_EXAMPLES=200 pytest tests/test_fuzz_*.py
+if os.environ.get("AAA_FUZZ_EXAMPLES"):
+    settings.register_profile("fuzz-examples", settings.get_profile("long"),
+                              max_examples=int(os.environ["AAA_FUZZ_EXAMPLES"]))
+    settings.load_profile("fuzz-examples")
+else:
+    settings.load_profile("ci")
 
 REPO = Path(__file__).resolve().parent.parent
 CCD_DATA = REPO.parent / "shared" / "data" / "ccd-sample-queries"

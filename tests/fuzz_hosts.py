@@ -24,15 +24,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import quote, unquote
 
-#: A long run with a custom number of cases per test (instead of the profiles' 25 or 1000), e.g.
-#: ``AAA_FUZZ_EXAMPLES=200 pytest tests/test_fuzz_fmi_calls.py tests/test_fuzz_fmu_values.py``.
-FUZZ_EXAMPLES = os.environ.get("AAA_FUZZ_EXAMPLES")
-if FUZZ_EXAMPLES and __name__ != "__main__":
-    from hypothesis import settings
-
-    settings.register_profile("fuzz-examples", settings.get_profile("long"), max_examples=int(FUZZ_EXAMPLES))
-    settings.load_profile("fuzz-examples")
-
 HOST_SOURCE = Path(__file__).resolve().parent / "c_host" / "fmu_host.c"
 INCLUDE = Path(__file__).resolve().parent.parent / "src" / "fmi3_layer" / "include"
 
