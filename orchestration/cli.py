@@ -14,6 +14,9 @@ from pathlib import Path
 logger = logging.getLogger("orchestration")
 
 DEFAULT_SCENE = "aaa_endovascular"
+#: Exit codes: 0 the command did what was asked (a run "completed" or "terminated" by an FMU, its
+#: results in the result folder); 1 a run or study started and failed or was interrupted (what was
+#: recorded is kept); 2 nothing was run: a usage or scene error, with "error: ..." on stderr.
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
@@ -31,20 +34,79 @@ def _cmd_build(args) -> int:
 
 
 def parse_assignments(items: list[str]) -> dict:
-    """``["contact.stiffness=800", "scene.duration=2"]`` -> typed overrides (TOML value syntax)."""
+    """``["contact.stiffness=800", "scene.duration=2"]`` -> typed overrides (TOML value syntax).
+
+    ValueError names the item and the fix; whether the parameter exists is the scene's check.
+    """
     import tomllib
 
     overrides = {}
     for item in items or []:
-        if "=" not in item:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or key.count(".") != 1 or not all(part.strip() for part in key.split(".")):
             raise ValueError(f"--set {item!r}: write component.parameter=value, e.g. contact.stiffness=800")
-        key, text = item.split("=", 1)
+        if any(c in text for c in "\n\r\0"):
+            # "v = 1\nw = 2" would parse as TOML and silently drop the rest
+            raise ValueError(f"--set {item!r}: the value has a line break or NUL; give one TOML value, "
+                             "e.g. 800, \"probe\" or [0.0, 0.1]")
+        if key in overrides:
+            raise ValueError(f"--set {key}: given twice; give each parameter once")
         try:
             value = tomllib.loads(f"v = {text}")["v"]
         except tomllib.TOMLDecodeError:
             value = text  # a bare word: a string
-        overrides[key.strip()] = value
+        overrides[key] = value
     return overrides
+
+
+def _duration(text: str):
+    """``--duration``: a finite positive time in seconds, exact ("0.5", "1e-3", "1/30")."""
+    from .scene import parse_time
+
+    problems: list[str] = []
+    value = parse_time(text, "--duration", problems)
+    if problems:
+        raise argparse.ArgumentTypeError(problems[0].removeprefix("--duration: "))
+    return value
+
+
+def _workers(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of processes, e.g. --workers 2") from None
+    if not 1 <= value <= 256:
+        raise argparse.ArgumentTypeError(f"{value} processes: give 1 to 256 (default: the CPU count)")
+    return value
+
+
+def _scheduler(text: str) -> str:
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        port = None
+        parts = None
+    if parts is None or not parts.scheme or not parts.hostname or port is None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Dask scheduler address; write tcp://host:8786")
+    return text
+
+
+def _out_problem(out: str) -> str | None:
+    """Why ``--out`` cannot be a result folder, or None; creates it (as the run would) to know."""
+    if not out.strip():
+        return "--out: empty; give a folder, e.g. --out results/mine"
+    path = Path(out)
+    try:
+        if path.exists() and not path.is_dir():
+            return f"--out {out}: exists and is not a folder; give a folder for the results"
+        path.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:
+        return f"--out {out!r}: cannot create the result folder ({getattr(exc, 'strerror', None) or exc})"
+    return None
 
 
 def _load(scene_arg: str, overrides: dict | None = None):
@@ -62,6 +124,8 @@ def _cmd_validate(args) -> int:
 
     try:
         overrides = parse_assignments(args.set)
+        if args.duration is not None:
+            overrides["duration"] = args.duration
         scene = load_scene(args.scene, overrides)
     except (SceneError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -90,13 +154,19 @@ def _cmd_run(args) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if args.duration is not None:  # checked with the scene: whole steps, and the run-size limit
+        overrides["duration"] = args.duration
     scene = _load(args.scene, overrides)
     if scene is None:
         return EXIT_USAGE
-    out = Path(args.out) if args.out else Path("results") / scene.name
+    out = Path(args.out) if args.out is not None else Path("results") / scene.name
+    problem = _out_problem(str(out))
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         simulation = Simulation(scene, out, hosting=args.hosting, realtime=args.realtime or None,
-                                progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu)
+                                progress=not args.quiet, vtu=not args.no_vtu)
     except ValueError as exc:  # a --duration that does not fit the steps
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -117,6 +187,10 @@ def _cmd_study(args) -> int:
     from .build import BuildError, ensure_fmus_built
     from .studies import run_study
 
+    problem = _out_problem(args.out) if args.out is not None else None
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         ensure_fmus_built(args.quiet)
     except BuildError as exc:
@@ -140,11 +214,14 @@ def main(argv: list[str] | None = None) -> int:
     p_val = sub.add_parser("validate", help="check a scene and list every problem")
     p_val.add_argument("scene", help="scene file, or the name of a shipped scene (scenes/<name>.toml)")
     p_val.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
+    p_val.add_argument("--duration", type=_duration, default=None,
+                       help="check this duration in s instead of the scene's, as `run --duration` would run it")
     p_val.set_defaults(func=_cmd_validate)
 
     p_run = sub.add_parser("run", help="run a scene (default: the AAA endovascular scene; builds the FMUs if needed)")
     p_run.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help=f"scene file or name (default {DEFAULT_SCENE})")
-    p_run.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scene's)")
+    p_run.add_argument("--duration", type=_duration, default=None,
+                       help="simulated seconds, e.g. 0.5 or 1/30 (default: the scene's)")
     p_run.add_argument("--out", default=None, help="result folder (default results/<scene>)")
     p_run.add_argument("--hosting", choices=("in-process", "out-of-process"), default=None,
                        help="run every FMU in this process or each in a worker process of its own (default: "
@@ -159,17 +236,22 @@ def main(argv: list[str] | None = None) -> int:
     p_study.add_argument("name", choices=("tradeoff", "stability", "extremes"))
     p_study.add_argument("--out", default=None, help="result folder (default results/study_<name>)")
     p_study.add_argument("--quick", action="store_true", help="a reduced sweep (what the tests run)")
-    p_study.add_argument("--workers", type=int, default=None, help="parallel processes (default: CPU count)")
-    p_study.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p_study.add_argument("--workers", type=_workers, default=None, help="parallel processes (default: CPU count)")
+    p_study.add_argument("--scheduler", type=_scheduler, default=None,
+                         help="Dask scheduler address, e.g. tcp://host:8786")
     p_study.add_argument("--fresh", action="store_true",
                          help="run every point again (default: resume, keeping the points finished in --out)")
     p_study.add_argument("--quiet", action="store_true", help="no progress bar")
     p_study.set_defaults(func=_cmd_study)
 
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        args = parser.parse_args(argv)
+        if args.command is None:
+            # No command: the main job (top-level options such as -v still apply).
+            args = parser.parse_args([*argv, "run"])
+    except SystemExit as exc:  # argparse: usage errors exit 2 after "error: ..."; --help exits 0
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    if args.command is None:
-        # No arguments: the main job.
-        args = parser.parse_args(["run", *(argv or [])])
     return args.func(args)

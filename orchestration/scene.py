@@ -459,7 +459,8 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     connections = _load_connections(data.get("connection", []), components, problems, declared)
     _check_algebraic_loops(connections, components, problems)
     record, surfaces, plots = _load_record(_table(data.get("record", {}), "[record]", problems,
-                                                  "<component> = [ports], surfaces, plots"), components, problems)
+                                                  "<component> = [ports], surfaces, plots"), components, problems,
+                                           declared)
     summary = _table(data.get("summary", {}), "[summary]", problems, "peaks, energy, warnings")
     _unknown_keys(summary, _SUMMARY_KEYS, "[summary]", problems)
     for key in ("peaks", "energy", "warnings"):
@@ -834,7 +835,9 @@ def _check_algebraic_loops(connections: list[ConnectionSpec], components: dict, 
                 return
 
 
-def _load_record(table: dict, components: dict, problems: list[str]):
+def _load_record(table: dict, components: dict, problems: list[str], declared=frozenset()):
+    """What to record; a component that is declared but could not be loaded (its problem is
+    reported already) is skipped rather than reported again as unknown."""
     record: dict[str, list[str]] = {}
     surfaces: list[SurfaceSpec] = []
     plots: list[dict] = []
@@ -842,16 +845,17 @@ def _load_record(table: dict, components: dict, problems: list[str]):
         if key == "surfaces":
             items = _list(value, "[record] surfaces", problems, "write each as a [[record.surfaces]] table")
             for i, item in enumerate(items):
-                surface = _load_surface(f"[record] surfaces[{i}]", item, components, problems)
+                surface = _load_surface(f"[record] surfaces[{i}]", item, components, problems, declared)
                 if surface is not None:
                     surfaces.append(surface)
         elif key == "plots":
             items = _list(value, "[record] plots", problems, "write each figure as a [[record.plots]] table")
-            plots = [item for i, item in enumerate(items) if _plot_ok(i, item, components, problems)]
+            plots = [item for i, item in enumerate(items) if _plot_ok(i, item, components, problems, declared)]
         else:
             comp = components.get(key)
             if comp is None:
-                problems.append(f"[record] {key}: unknown component; components: {', '.join(components)}")
+                if key not in declared:
+                    problems.append(f"[record] {key}: unknown component; components: {', '.join(components)}")
                 continue
             if not isinstance(value, list):
                 problems.append(f"[record] {key}: must be a list of port names (got {_short(value)})")
@@ -872,14 +876,14 @@ def _load_record(table: dict, components: dict, problems: list[str]):
                 elif info.size > 64:
                     problems.append(f"[record] {key}.{port}: {info.size} values is too many for a CSV column set; "
                                     "record surfaces with [[record.surfaces]]")
-            if comp.is_continuous:
+            if comp.is_continuous and not comp.is_fmu:  # an FMU without a step has its own problem
                 problems.append(f"[record] {key}: a continuous source has no steps to record at; record the input it drives")
                 continue
             record[key] = list(dict.fromkeys(ports))
     return record, surfaces, plots
 
 
-def _load_surface(where: str, item, components: dict, problems: list[str]) -> SurfaceSpec | None:
+def _load_surface(where: str, item, components: dict, problems: list[str], declared) -> SurfaceSpec | None:
     if not isinstance(item, dict):
         problems.append(f"{where}: must be a table {{ component, positions, triangles }}")
         return None
@@ -887,7 +891,8 @@ def _load_surface(where: str, item, components: dict, problems: list[str]) -> Su
     component = item.get("component")
     comp = components.get(component) if isinstance(component, str) else None
     if comp is None:
-        problems.append(f"{where}: unknown component {_short(component)}; components: {', '.join(components)}")
+        if not isinstance(component, str) or component not in declared:
+            problems.append(f"{where}: unknown component {_short(component)}; components: {', '.join(components)}")
         return None
     ok = True
     for role in ("positions", "triangles"):
@@ -914,7 +919,7 @@ def _load_surface(where: str, item, components: dict, problems: list[str]) -> Su
     return SurfaceSpec(comp.name, item["positions"], item["triangles"], every, tuple(point_data), name)
 
 
-def _plot_ok(index: int, figure, components: dict, problems: list[str]) -> bool:
+def _plot_ok(index: int, figure, components: dict, problems: list[str], declared) -> bool:
     """Check one [[record.plots]] figure as plots.plot_signals will draw it at the end of the run."""
     where = f"[record] plots[{index}]"
     if not isinstance(figure, dict):
@@ -948,7 +953,7 @@ def _plot_ok(index: int, figure, components: dict, problems: list[str]) -> bool:
                 continue
             _unknown_keys(series, _SERIES_KEYS, at_series, problems)
             stream, column = series.get("stream"), series.get("column")
-            if not isinstance(stream, str) or stream not in components:
+            if not isinstance(stream, str) or (stream not in components and stream not in declared):
                 problems.append(f"{at_series} stream: {_short(stream)} is not a component of the scene")
             if not isinstance(column, str) or not column:
                 problems.append(f"{at_series} column: must be a port name (got {_short(column)})")
