@@ -892,7 +892,7 @@ def make_block(name: str, table: dict, base_dir: Path):
     Raises ``BlockConfigError`` listing every problem at once (unknown, missing or invalid keys).
     """
     kind = table.get("kind")
-    if kind not in BLOCK_KINDS:
+    if not isinstance(kind, str) or kind not in BLOCK_KINDS:
         got = "no 'kind' key" if "kind" not in table else f"kind = {kind!r}"
         raise BlockConfigError([f"kind must be one of {list(BLOCK_KINDS)} ({got})"], name)
     opts = {k: v for k, v in table.items() if k != "kind"}

@@ -1,0 +1,385 @@
+"""Fuzzing scene files (issue 14): whatever a scene file holds, ``load_scene`` and ``validate``
+either accept a scene that is sound or refuse it with ``SceneError`` / exit code 2, naming where
+the problem is; never another exception, never a traceback.
+
+Two generators: *structure* (random TOML trees built from the scene vocabulary: wrong types,
+missing and extra keys, nested tables, huge, negative and non-finite numbers, names with path
+characters, and files that are not UTF-8) and *values* (one value of a shipped scene replaced,
+deleted or joined by an extra key). Cases run in process (``scene_from_dict`` / ``load_scene``)
+and, for a few, through ``python -m orchestration validate`` in a subprocess.
+
+The number of cases is the hypothesis profile's (tests/conftest.py): 25 per test in CI, 1000 with
+``--hypothesis-profile=long``.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import tomllib
+from fractions import Fraction
+from pathlib import Path
+
+import pytest
+from hypothesis import given, note
+from hypothesis import strategies as st
+
+from orchestration import cli
+from orchestration.scene import (_COMPONENT_NAME, _FILE_NAME, _SCENE_NAME, MAX_RUN_STEPS, MAX_STEP, MIN_STEP,
+                                 SCENE_DIR, Scene, SceneError, load_scene, scene_from_dict)
+
+REPO = Path(__file__).resolve().parent.parent
+SHIPPED = ("aaa_endovascular", "virtual_wall", "tissue_indentation", "catheter_tube")
+
+pytestmark = pytest.mark.usefixtures("fmus_in_repo")
+
+
+@pytest.fixture(scope="module")
+def fmus_in_repo():
+    """The shipped scenes name Tissue.fmu etc., looked up in fmus/: build them there if missing."""
+    from orchestration.build import available_fmus, build_fmu, fmu_is_stale
+
+    for name in available_fmus():
+        if fmu_is_stale(name):
+            build_fmu(name)
+
+
+# -- writing TOML (no writer in the standard library) ----------------------------------------------
+def toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a TOML basic string: JSON's escapes are TOML's
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(type(value))
+
+
+def toml_text(data: dict) -> str:
+    return "".join(f"{json.dumps(k)} = {toml_value(v)}\n" for k, v in data.items())
+
+
+# -- strategies ---------------------------------------------------------------------------------------
+KEYS = ["scene", "fmu", "source", "block", "connection", "record", "summary", "name", "description", "duration",
+        "hosting", "realtime", "start_time", "path", "step", "parameters", "kind", "from", "to", "transition",
+        "ordering", "surfaces", "plots", "peaks", "energy", "warnings", "component", "positions", "triangles",
+        "every", "point_data", "file", "panels", "series", "stream", "column", "times", "outputs", "units",
+        "contact", "tissue", "catheter", "device", "operator", "stiffness", "internal_step", "mass",
+        "n_surface_nodes", "tool"]
+PATHLIKE = ["../escape", "/tmp/abs", "..", ".", "a/b", "C:\\x", "~", "", " ", "a\x00b", "Tissue.fmu",
+            "../fmus/Contact.fmu", "contact.tool_force", "catheter.tip_force", "hold", "jacobi", "in-process",
+            "1/30", "0.001", "nan", "é", "x" * 300]
+text = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=12)
+numbers = st.one_of(
+    st.integers(min_value=-2**64, max_value=2**64),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0, -1, 1, 1e9, 1e-9, 1e300, -0.0, 2**63, 0.001, 1 / 30, 4.0, 1e-7]),
+)
+scalars = st.one_of(numbers, st.booleans(), text, st.sampled_from(PATHLIKE))
+keys = st.one_of(st.sampled_from(KEYS), text.filter(bool))
+trees = st.recursive(scalars, lambda children: st.one_of(st.lists(children, max_size=4),
+                                                          st.dictionaries(keys, children, max_size=4)),
+                     max_leaves=12)
+documents = st.dictionaries(st.one_of(st.sampled_from(KEYS[:7]), keys), trees, max_size=6)
+
+
+def shipped_data(name: str) -> dict:
+    return tomllib.loads((SCENE_DIR / f"{name}.toml").read_text())
+
+
+def leaf_paths(node, prefix=()):
+    """Every path (tuple of keys and indices) into a parsed TOML tree, tables and lists included."""
+    yield prefix
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from leaf_paths(v, prefix + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from leaf_paths(v, prefix + (i,))
+
+
+@st.composite
+def mutated_scenes(draw):
+    """A shipped scene with one value replaced, one key deleted or one extra key added."""
+    name = draw(st.sampled_from(SHIPPED))
+    data = shipped_data(name)
+    paths = [p for p in leaf_paths(data) if p]
+    path = draw(st.sampled_from(paths))
+    parent = data
+    for part in path[:-1]:
+        parent = parent[part]
+    action = draw(st.sampled_from(["replace", "replace", "replace", "delete", "add"]))
+    if action == "replace":
+        old = parent[path[-1]]
+        if isinstance(old, (int, float)) and not isinstance(old, bool) and draw(st.booleans()):
+            # a plausible-looking change of a number: scaled, negated or made non-finite
+            factor = draw(st.sampled_from([-1, 0, 0.5, 2, 10, 1e3, 1e9, 1e-9, math.nan, math.inf]))
+            new = old * factor if not math.isnan(factor) else math.nan
+            new = int(new) if isinstance(old, int) and math.isfinite(new) else new
+        else:
+            new = draw(trees)
+        parent[path[-1]] = new
+    elif action == "delete":
+        del parent[path[-1]]
+    else:
+        target = parent[path[-1]] if isinstance(parent[path[-1]], dict) else parent
+        if isinstance(target, list):
+            target.append(draw(trees))
+        else:
+            target[draw(keys)] = draw(trees)
+    note(f"{name}: {action} at {path}")
+    return name, data, path
+
+
+# -- what an accepted scene must be (anything else would be "silently wrong") -------------------------
+def assert_sound(scene: Scene) -> None:
+    assert isinstance(scene, Scene)
+    assert _SCENE_NAME.fullmatch(scene.name), scene.name  # a name, never a path
+    assert isinstance(scene.duration, Fraction) and scene.duration > 0
+    steps = [c.step for c in scene.components.values() if c.step is not None]
+    assert all(MIN_STEP <= s <= MAX_STEP for s in steps)
+    assert sum(scene.duration / s for s in steps) <= MAX_RUN_STEPS
+    for c in scene.components.values():
+        assert _COMPONENT_NAME.fullmatch(c.name)
+        assert (scene.duration / c.step).denominator == 1 if c.step is not None else True
+    for component, ports in scene.record.items():
+        assert len(ports) == len(set(ports)), ports
+        assert all(p in scene.components[component].ports for p in ports)
+    for surface in scene.surfaces:
+        assert _FILE_NAME.fullmatch(surface.name)
+    for figure in scene.plots:
+        assert _FILE_NAME.fullmatch(figure["file"]) and figure["file"].endswith(".png")
+
+
+LOCATED = re.compile(r"\[|connection|override|top level|the scene has no|algebraic loop|(fmu|source|block): "
+                     r"|TOML syntax error|not UTF-8|scene file not found|cannot read the file")
+
+
+def assert_refusal(exc: SceneError) -> None:
+    assert exc.problems, "a SceneError must list its problems"
+    for problem in exc.problems:
+        assert isinstance(problem, str) and problem.strip()
+        assert "Traceback" not in problem
+        # every problem starts by saying where: "[scene] duration: ...", "connection 3 ...", ...
+        assert LOCATED.match(problem), problem
+
+
+def check_in_process(data: dict, base_dir: Path = SCENE_DIR, path: Path | None = None) -> SceneError | None:
+    """Accept a sound scene or refuse with SceneError; any other exception fails the test."""
+    try:
+        scene = scene_from_dict(data, base_dir, path)
+    except SceneError as exc:
+        assert_refusal(exc)
+        return exc
+    assert_sound(scene)
+    return None
+
+
+def check_validate_subprocess(path: Path) -> None:
+    result = subprocess.run([sys.executable, "-m", "orchestration", "validate", str(path)], cwd=REPO,
+                            capture_output=True, text=True, timeout=120)
+    assert "Traceback" not in result.stderr, result.stderr
+    assert result.returncode in (0, 2), (result.returncode, result.stderr)
+    if result.returncode == 2:
+        assert result.stderr.startswith("error: "), result.stderr
+    else:
+        assert result.stdout.rstrip().splitlines()[0].endswith(": OK")
+
+
+def write_bytes(data: bytes) -> Path:
+    handle, name = tempfile.mkstemp(suffix=".toml", prefix="fuzz_scene_")
+    with os.fdopen(handle, "wb") as f:
+        f.write(data)
+    return Path(name)
+
+
+# -- structure ---------------------------------------------------------------------------------------
+@given(documents)
+def test_random_trees_are_refused_with_a_located_message_or_sound(data):
+    check_in_process(data)
+
+
+@given(documents)
+def test_random_trees_through_a_file_and_load_scene(data):
+    path = write_bytes(toml_text(data).encode())
+    try:
+        load_scene(path)
+    except SceneError as exc:
+        assert_refusal(exc)
+    else:  # pragma: no cover - a random tree is never a whole scene
+        pytest.fail("a random tree was accepted")
+    finally:
+        path.unlink()
+
+
+@given(st.sampled_from(SHIPPED), st.binary(min_size=1, max_size=8), st.integers(min_value=0))
+def test_bytes_that_are_not_utf8_name_the_file_and_the_offset(name, junk, where):
+    text = (SCENE_DIR / f"{name}.toml").read_bytes()
+    at = where % len(text)
+    data = text[:at] + b"\xff" + junk + text[at:]  # 0xff never occurs in UTF-8
+    path = write_bytes(data)
+    try:
+        with pytest.raises(SceneError) as info:
+            load_scene(path)
+        assert len(info.value.problems) == 1
+        assert "not UTF-8" in info.value.problems[0] and "offset" in info.value.problems[0]
+        assert str(path) in str(info.value)
+    finally:
+        path.unlink()
+
+
+@given(documents)
+def test_validate_in_a_subprocess_exits_2_with_an_error_line_never_a_traceback(data):
+    path = write_bytes(toml_text(data).encode())
+    try:
+        check_validate_subprocess(path)
+    finally:
+        path.unlink()
+
+
+# -- values: mutations of the shipped scenes ----------------------------------------------------------
+@given(mutated_scenes())
+def test_mutated_shipped_scenes_are_refused_naming_the_key_or_its_table_or_sound(case):
+    name, data, path = case
+    exc = check_in_process(data, SCENE_DIR, SCENE_DIR / f"{name}.toml")
+    if exc is None:
+        return
+    # The message names the changed key, or (for a value whose consequences show elsewhere, e.g. a
+    # structural parameter that resizes an array) the table or component it is in.
+    names = [str(p) for p in path if isinstance(p, str)]
+    assert any(n in problem for n in names for problem in exc.problems), (path, exc.problems)
+
+
+@given(case=mutated_scenes())
+def test_mutated_shipped_scenes_through_the_cli_in_process(capsys, case):
+    name, data, _ = case
+    path = write_bytes(toml_text(data).encode())
+    try:
+        code = cli.main(["validate", str(path)])
+    finally:
+        path.unlink()
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    assert code in (cli.EXIT_OK, cli.EXIT_USAGE)
+    if code == cli.EXIT_USAGE:
+        assert err.startswith("error: ") and str(path) in err
+    else:
+        assert out.splitlines()[0].endswith(": OK")
+
+
+# -- the findings of issue 14, one each --------------------------------------------------------------
+def _problems(data: dict, base_dir: Path = SCENE_DIR) -> list[str]:
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(data, base_dir, SCENE_DIR / "x.toml")
+    return info.value.problems
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("scene", 5, "[scene]: must be a table"),
+    ("fmu", "Tissue.fmu", "fmu: must be a table"),
+    ("record", [1, 2], "[record]: must be a table"),
+    ("summary", "x", "[summary]: must be a table"),
+    ("source", 3.5, "source: must be a table"),
+])
+def test_a_value_where_a_table_is_expected_is_a_problem(key, value, expected):
+    data = shipped_data("virtual_wall")
+    data[key] = value
+    assert any(p.startswith(expected) for p in _problems(data))
+
+
+def test_parameters_that_are_not_a_table():
+    data = shipped_data("virtual_wall")
+    data["fmu"]["contact"]["parameters"] = [1, 2, 3]
+    assert any(p.startswith("[fmu.contact] parameters: must be a table") for p in _problems(data))
+
+
+def test_a_port_recorded_twice_is_refused_by_validate():
+    data = shipped_data("virtual_wall")
+    data["record"]["contact"].append("tool_force")
+    assert "[record] contact: 'tool_force' is listed twice; list each port once" in _problems(data)
+
+
+@pytest.mark.parametrize("name", ["../escape", "/tmp/abs", "a/b", "..", ".hidden", "", "a\\b", "x" * 101, 7])
+def test_a_scene_name_is_a_name_not_a_path(name):
+    data = shipped_data("virtual_wall")
+    data["scene"]["name"] = name
+    problems = _problems(data)
+    assert len(problems) == 1 and problems[0].startswith("[scene] name: "), problems
+    assert "--out" in problems[0] or "string" in problems[0]
+
+
+@pytest.mark.parametrize("where, value", [("surface", "../../x"), ("figure", "/tmp/forces.png"),
+                                          ("figure", "forces.svg")])
+def test_files_the_recording_writes_stay_in_the_result_folder(where, value):
+    data = shipped_data("aaa_endovascular")
+    if where == "surface":
+        data["record"]["surfaces"][0]["name"] = value
+        expected = "[record] surfaces[0] name: "
+    else:
+        data["record"]["plots"][0]["file"] = value
+        expected = "[record] plots[0] file: "
+    assert any(p.startswith(expected) for p in _problems(data))
+
+
+@pytest.mark.parametrize("step, fragment", [(1e9, "longer than 1 s"), (1e-9, "shorter than 1/1000000 s"),
+                                            (-1, "must be positive"), ("abc", "is not a time")])
+def test_implausible_steps_are_refused_with_the_limit(step, fragment):
+    data = shipped_data("virtual_wall")
+    data["block"]["device"]["step"] = step
+    problems = _problems(data)
+    assert any(p.startswith("[block.device] step: ") and fragment in p for p in problems), problems
+
+
+def test_a_run_of_more_steps_than_the_limit_is_refused_naming_limit_and_longest_duration():
+    data = shipped_data("virtual_wall")
+    data["scene"]["duration"] = 6000.0  # 2 components at 1 kHz: 1.2e7 steps
+    (problem,) = _problems(data)
+    assert problem.startswith("[scene] duration: 6000 s means 1.2e+07 component steps")
+    assert "limit of 1e+07 steps" in problem and "at most 5000 s" in problem
+    data["scene"]["duration"] = 5000.0  # exactly the limit: accepted
+    assert_sound(scene_from_dict(data, SCENE_DIR, SCENE_DIR / "x.toml"))
+
+
+@pytest.mark.parametrize("value, fragment", [(math.nan, "not a finite number"), (math.inf, "not a finite number"),
+                                             ("soft", "expects Float64")])
+def test_fmu_parameters_are_checked_against_the_model_description(value, fragment):
+    data = shipped_data("virtual_wall")
+    data["fmu"]["contact"]["parameters"]["stiffness"] = value
+    (problem,) = _problems(data)
+    assert problem.startswith("[fmu.contact] parameters.stiffness: ") and fragment in problem
+
+
+def test_integer_parameters_out_of_their_type_range_and_huge_array_sizes():
+    data = shipped_data("virtual_wall")
+    data["fmu"]["contact"]["parameters"]["n_tool_points"] = -1
+    data["fmu"]["contact"]["parameters"]["compliance_force_lag"] = 2**40
+    problems = _problems(data)
+    assert any(p.startswith("[fmu.contact] parameters.n_tool_points: -1 is outside the range of UInt64")
+               for p in problems), problems
+    assert any(p.startswith("[fmu.contact] parameters.compliance_force_lag: 1099511627776 is outside the range "
+                            "of Int32") for p in problems), problems
+    data = shipped_data("virtual_wall")
+    data["fmu"]["contact"]["parameters"]["n_surface_nodes"] = 10**9
+    problems = _problems(data)
+    assert any(p.startswith("[fmu.contact] parameters.n_surface_nodes: 1000000000 is more than 1000000")
+               for p in problems), problems
+
+
+def test_a_path_is_not_taken_for_a_shipped_scene_name(tmp_path):
+    with pytest.raises(SceneError, match="scene file not found"):
+        load_scene(tmp_path / "virtual_wall")
