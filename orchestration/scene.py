@@ -406,9 +406,6 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     head = _table(data.get("scene", {}), "[scene]", problems, "name, description, duration, ...")
     _unknown_keys(head, _SCENE_KEYS, "[scene]", problems)
     duration_where = "[scene] duration"
-    if "duration" in overrides:
-        head = {**head, "duration": overrides.pop("duration")}
-        duration_where = "duration (from the command line or a study)"
     for key in [k for k in overrides if k.startswith("scene.")]:
         field_name = key.split(".", 1)[1]
         if field_name not in _SCENE_KEYS:
@@ -417,6 +414,9 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
         elif field_name == "duration":
             duration_where = "scene.duration (override)"
         head = {**head, field_name: overrides.pop(key)}
+    if "duration" in overrides:  # after scene.duration: `run --duration` wins over `--set scene.duration=`
+        head = {**head, "duration": overrides.pop("duration")}
+        duration_where = "duration (from the command line or a study)"
     name = head.get("name", path.stem if path else "scene")
     problem = scene_name_problem(name)
     if problem:
