@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .ports import PortInfo
+from .ports import MAX_PORT_VALUES, PortInfo
 
 try:
     from .errors import FmuCallError
@@ -483,7 +483,22 @@ def _check_surface(problems, shape, given: dict) -> dict:
         out["n_circumferential"] = _int(problems, "n_circumferential", opts["n_circumferential"],
                                         "nodes around each ring, e.g. 32", low=3)
         out["n_axial"] = _int(problems, "n_axial", opts["n_axial"], "segments along the axis, e.g. 20", low=1)
+    _check_surface_size(problems, shape, out)
     return out
+
+
+def _check_surface_size(problems, shape, out: dict) -> None:
+    """The surface's node coordinates must fit a port (MAX_PORT_VALUES): a larger one is a typo."""
+    if shape == "plane" and out.get("divisions") is not None:
+        na, nb = out["divisions"]
+        nodes, fix = (na + 1) * (nb + 1), "fewer divisions"
+    elif shape == "tube" and out.get("n_circumferential") is not None and out.get("n_axial") is not None:
+        nodes, fix = out["n_circumferential"] * (out["n_axial"] + 1), "fewer n_circumferential or n_axial"
+    else:
+        return
+    if 3 * nodes > MAX_PORT_VALUES:
+        problems.append(f"the surface would have {nodes} nodes, more than {MAX_PORT_VALUES // 3} ({MAX_PORT_VALUES} "
+                        f"coordinates, the most a port holds); give {fix}")
 
 
 class RigidSurfaceSource(Source):

@@ -33,6 +33,10 @@ INTEGER_RANGES = {
     "Int32": (-2**31, 2**31 - 1), "UInt32": (0, 2**32 - 1), "Int64": (-2**63, 2**63 - 1), "UInt64": (0, 2**64 - 1),
     "Enumeration": (-2**63, 2**63 - 1),
 }
+#: The most values one port may hold (an array sized by structural parameters or a block's options).
+#: The AAA wall has 2688 surface nodes (8064 coordinates); a port of more than a million values is a
+#: typo and would exhaust memory when the FMU or block allocates it.
+MAX_PORT_VALUES = 1_000_000
 #: Largest magnitude below which every integer is exact in each float type.
 _FLOAT_EXACT = {"Float32": 2**24, "Float64": 2**53}
 

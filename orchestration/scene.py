@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from . import transitions as tr
-from .ports import (INTEGER_RANGES, NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo,
+from .ports import (INTEGER_RANGES, MAX_PORT_VALUES, NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo,
                     conversion_problem, parse_binary, read_fmu)
 
 logger = logging.getLogger(__name__)
@@ -63,10 +63,6 @@ MAX_STEP = Fraction(1)
 #: in ms typed as s. It is refused, not warned about, so that `validate` and the exit code stop a
 #: script or study before it blocks a machine for hours; split a genuinely long session into runs.
 MAX_RUN_STEPS = 10_000_000
-#: The most values one port may hold (an array sized by structural parameters). The AAA wall has
-#: 2688 surface nodes (8064 coordinates); a structural parameter making a port of more than a
-#: million values is a typo and would exhaust memory when the FMU allocates it.
-MAX_PORT_VALUES = 1_000_000
 
 #: A scene name names its result folder (results/<name>): a plain name, never a path.
 _SCENE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}")
