@@ -56,6 +56,8 @@ class PortInfo:
     description: str = ""
     declared_type: str | None = None            # the TypeDefinitions entry it is declared with
     items: tuple[tuple[str, int], ...] = ()     # an Enumeration's items (name, value)
+    minimum: float | None = None                # the declared min and max (numbers only), None if not declared
+    maximum: float | None = None
 
     @property
     def size(self) -> int:
@@ -160,6 +162,19 @@ def _start_value(variable):
     return start
 
 
+def _bound(variable, which: str) -> float | None:
+    """A numeric variable's declared ``min``/``max`` (its own, else its declared type's), or None."""
+    value = getattr(variable, which, None)
+    if value is None and variable.declaredType is not None:
+        value = getattr(variable.declaredType, which, None)
+    if value is None or variable.type not in NUMERIC_TYPES or variable.type == "Boolean":
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
 def read_fmu(path: Path | str, parameters: dict | None = None) -> FmuDescription:
     """Describe the FMU at ``path``; structural parameters in ``parameters`` override start values.
 
@@ -204,6 +219,7 @@ def read_fmu(path: Path | str, parameters: dict | None = None) -> FmuDescription
             description=v.description or "",
             declared_type=declared.name if declared is not None else None,
             items=tuple((item.name, int(item.value)) for item in declared.items) if declared is not None else (),
+            minimum=_bound(v, "min"), maximum=_bound(v, "max"),
         )
     step = md.defaultExperiment.stepSize if md.defaultExperiment else None
     cs = md.coSimulation

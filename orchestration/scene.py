@@ -592,6 +592,13 @@ def _value_problem(port: PortInfo, value) -> str | None:
     """Why a value of the right type cannot be set: not finite, out of the type's range, or an array
     size beyond MAX_PORT_VALUES (a structural parameter); None if it can."""
     values = _flat(value)
+    numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    below = [v for v in numbers if port.minimum is not None and v < port.minimum]
+    above = [v for v in numbers if port.maximum is not None and v > port.maximum]
+    if below or above:  # the FMU's own range (min/max in its modelDescription.xml)
+        low = "-inf" if port.minimum is None else f"{port.minimum:g}"
+        high = "inf" if port.maximum is None else f"{port.maximum:g}"
+        return f"{(below or above)[0]!r} is outside the range the FMU declares for it, {low} to {high}"
     if port.type.startswith("Float"):
         bad = [v for v in values if not math.isfinite(v)]
         if bad:
