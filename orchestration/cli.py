@@ -159,15 +159,16 @@ def _cmd_run(args) -> int:
     scene = _load(args.scene, overrides)
     if scene is None:
         return EXIT_USAGE
-    out = Path(args.out) if args.out is not None else Path("results") / scene.name
-    problem = _out_problem(str(out))
+    out_text = args.out if args.out is not None else str(Path("results") / scene.name)
+    problem = _out_problem(out_text)  # the text: Path("") would be ".", the current folder
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return EXIT_USAGE
+    out = Path(out_text)
     try:
         simulation = Simulation(scene, out, hosting=args.hosting, realtime=args.realtime or None,
                                 progress=not args.quiet, vtu=not args.no_vtu)
-    except ValueError as exc:  # a --duration that does not fit the steps
+    except ValueError as exc:  # Simulation checks the duration again (the scene did: not reached)
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if not args.quiet:

@@ -250,6 +250,7 @@ def test_study_with_random_arguments(workdir, capsys, study_stub, data):
     (["validate", CHEAP_SCENE, "--set", "contact.step=1e9"], 2, "longer than 1 s"),
     (["study", "tradeoff", "--workers", "0"], 2, "argument --workers: 0 processes"),
     (["run", "--bogus"], 2, "unrecognized arguments: --bogus"),
+    (["run", CHEAP_SCENE, "--duration", "0.01", "--out", ""], 2, "--out: empty"),
 ])
 def test_refused_inputs_through_the_entry_point(fmus_in_repo, tmp_path, argv, code, fragment):
     result = subprocess.run([sys.executable, "-m", "orchestration", *argv], cwd=tmp_path, capture_output=True,
