@@ -63,6 +63,10 @@ MAX_STEP = Fraction(1)
 #: in ms typed as s. It is refused, not warned about, so that `validate` and the exit code stop a
 #: script or study before it blocks a machine for hours; split a genuinely long session into runs.
 MAX_RUN_STEPS = 10_000_000
+#: The deepest nesting of tables and lists a scene may have. The format nests at most 5 levels
+#: ([record] plots, panels, series, a table); far deeper nesting is no scene, and would exhaust
+#: the interpreter's recursion limit (the TOML parser's, and ours) with a RecursionError.
+MAX_NESTING = 32
 
 #: A scene name names its result folder (results/<name>): a plain name, never a path.
 _SCENE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}")
@@ -335,7 +339,25 @@ def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(path, [f"TOML syntax error: {exc}"]) from None
+    except RecursionError:
+        raise SceneError(path, [f"tables or lists nested too deeply for the TOML parser; a scene nests at most "
+                                f"{MAX_NESTING} levels"]) from None
     return scene_from_dict(data, path.parent, path, overrides)
+
+
+def _too_deep(data) -> str | None:
+    """Where ``data`` nests deeper than MAX_NESTING ("fmu.x.parameters.y[0]..."), or None; iterative,
+    so that the check itself cannot exhaust the recursion limit."""
+    stack = [(data, "", 0)]
+    while stack:
+        node, where, depth = stack.pop()
+        if depth > MAX_NESTING:
+            return where[:60] + ("..." if len(where) > 60 else "")
+        if isinstance(node, dict):
+            stack.extend((v, f"{where}.{k}" if where else str(k), depth + 1) for k, v in node.items())
+        elif isinstance(node, list):
+            stack.extend((v, f"{where}[{i}]", depth + 1) for i, v in enumerate(node))
+    return None
 
 
 def _table(value, where: str, problems: list[str], fix: str) -> dict:
@@ -391,6 +413,10 @@ def _component_name_problem(section: str, name: str) -> str | None:
 def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overrides: dict | None = None) -> Scene:
     """Build and check a scene from parsed TOML (``base_dir`` resolves relative paths)."""
     problems: list[str] = []
+    deep = _too_deep(data)
+    if deep is not None:
+        raise SceneError(path, [f"{deep}: tables or lists nested more than {MAX_NESTING} levels deep; a scene "
+                                "nests at most 5 (see scenes/README.md)"])
     allowed_top = {"scene", "fmu", "source", "block", "connection", "record", "summary"}
     _unknown_keys(data, allowed_top, "top level", problems)
     overrides = dict(overrides or {})

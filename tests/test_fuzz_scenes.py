@@ -283,3 +283,16 @@ def test_mutated_shipped_scenes_through_the_cli_in_process(capsys, case):
         assert err.startswith("error: ") and str(path) in err
     else:
         assert out.splitlines()[0].endswith(": OK")
+
+
+@given(st.integers(min_value=0, max_value=3000), st.sampled_from(["[", "{a = "]), st.sampled_from(KEYS[:7] + ["x"]))
+def test_nesting_of_any_depth_is_accepted_or_refused_never_a_recursion_error(depth, opener, key):
+    closer = "]" if opener == "[" else "}"
+    inner = "1" if opener != "[" else ""
+    path = write_bytes(f"{json.dumps(key)} = {opener * depth}{inner}{closer * depth}\n".encode())
+    try:
+        load_scene(path)
+    except SceneError as exc:
+        assert_refusal(exc)
+    finally:
+        path.unlink()

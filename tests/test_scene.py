@@ -333,3 +333,14 @@ def test_a_value_outside_the_declared_min_max_of_a_variable_is_a_problem():
     problems.clear()
     _check_parameters("[fmu.x]", {"gain": 10.0, "n": 1}, ports, problems)
     assert problems == []
+
+
+@pytest.mark.parametrize("depth", [40, 900, 5000])
+def test_deeply_nested_values_are_a_problem_not_a_recursion_error(tmp_path, depth):
+    # 900 levels parse but would exhaust the recursion limit later; 5000 exhaust the TOML parser's
+    path = tmp_path / "deep.toml"
+    path.write_text('[scene]\nname = "x"\n[fmu.contact]\nparameters = { v = ' + "[" * depth + "]" * depth + " }\n")
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
+    (problem,) = info.value.problems
+    assert "nested" in problem and "32 levels" in problem, problem
