@@ -340,7 +340,7 @@ def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(path, [f"TOML syntax error: {exc}"]) from None
     except RecursionError:
-        raise SceneError(path, [f"tables or lists nested too deeply for the TOML parser; a scene nests at most "
+        raise SceneError(path, [f"TOML syntax error: tables or lists nested too deeply to parse; a scene nests at most "
                                 f"{MAX_NESTING} levels"]) from None
     return scene_from_dict(data, path.parent, path, overrides)
 

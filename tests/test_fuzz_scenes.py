@@ -171,7 +171,8 @@ def assert_sound(scene: Scene) -> None:
 
 
 LOCATED = re.compile(r"\[|connection|override|top level|the scene has no|algebraic loop|(fmu|source|block): "
-                     r"|TOML syntax error|not UTF-8|scene file not found|cannot read the file")
+                     r"|TOML syntax error|not UTF-8|scene file not found|cannot read the file"
+                     r"|\S+: tables or lists nested")
 
 
 def assert_refusal(exc: SceneError) -> None:
