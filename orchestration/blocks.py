@@ -60,7 +60,14 @@ class BlockConfigError(ValueError):
 # Each checker appends readable problems to `problems` and returns the clean value (or None).
 
 def _is_real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+    """A number a float can hold: TOML integers have no size limit, and 10**400 overflows a float."""
+    if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
+        return False
+    try:
+        float(value)
+    except OverflowError:
+        return False
+    return True
 
 
 def _is_int(value) -> bool:
@@ -88,6 +95,9 @@ def _int(problems, key, value, fix, *, low=1):
 def _vector(problems, key, value, n, fix):
     try:
         arr = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # an integer no float holds (TOML integers have no size limit)
+        problems.append(f"{key} must hold finite numbers (got {value!r}): {fix}")
+        return None
     except (TypeError, ValueError):
         arr = None
     if arr is None or arr.shape != (n,) or isinstance(value, (str, bytes)) or (
@@ -586,6 +596,30 @@ _PLANT_INPUTS = ("operator_force", "wall_force")
 _PLANT_OUTPUTS = ("position", "velocity", "wall_energy", "operator_energy", "dissipated_energy", "kinetic_energy")
 
 
+#: Plausibility limits of the device plant: values outside cannot be meant, and some overflow the
+#: exact step (mass = 1e-300 kg makes F/m and the energy integrals inf, then NaN, silently).
+#: mass: 1e-10 kg is 100x below the lightest device the stability study models (the passivity worst
+#: case, m = 1e-3 bound T: about 1.6e-8 kg), 1000 kg far above any haptic device (0.01-1 kg).
+#: damping: 1e6 N s/m is 1e5 times a desktop device's. Initial state: a desktop device's workspace
+#: is about 0.2 m and its speeds below 1 m/s; 10 m and 100 m/s cannot be meant.
+PLANT_LIMITS = {"mass": (1e-10, 1e3), "damping": (0.0, 1e6)}
+PLANT_MAX_POSITION = 10.0       # m, |initial_position|
+PLANT_MAX_SPEED = 100.0         # m/s, |initial_velocity|
+
+
+def _check_plant_limits(problems, out: dict) -> None:
+    for key, (low, high) in PLANT_LIMITS.items():
+        value = out.get(key)
+        if value is not None and not low <= value <= high:
+            problems.append(f"{key} must be within {low:g} to {high:g} (got {value!r}): see blocks.PLANT_LIMITS for why")
+    for key, limit, unit in (("initial_position", PLANT_MAX_POSITION, "m"),
+                             ("initial_velocity", PLANT_MAX_SPEED, "m/s")):
+        value = out.get(key)
+        if value is not None and float(np.linalg.norm(value)) > limit:
+            problems.append(f"{key} must have a magnitude of at most {limit:g} {unit} (got {value.tolist()!r}): "
+                            "a desktop haptic device's workspace is about 0.2 m")
+
+
 def _check_plant(problems, values: dict) -> dict:
     out = {}
     checks = {
@@ -600,6 +634,7 @@ def _check_plant(problems, values: dict) -> dict:
         if isinstance(value, np.ndarray) and value.size == 1 and key in ("mass", "damping", "step"):
             value = float(value.reshape(-1)[0])
         out[key] = checks[key](value)
+    _check_plant_limits(problems, out)
     return out
 
 

@@ -614,6 +614,13 @@ def _flat(value) -> list:
     return [value]
 
 
+def _finite(value) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond any float (TOML integers have no size limit)
+        return False
+
+
 def _value_problem(port: PortInfo, value) -> str | None:
     """Why a value of the right type cannot be set: not finite, out of the type's range, or an array
     size beyond MAX_PORT_VALUES (a structural parameter); None if it can."""
@@ -626,7 +633,7 @@ def _value_problem(port: PortInfo, value) -> str | None:
         high = "inf" if port.maximum is None else f"{port.maximum:g}"
         return f"{(below or above)[0]!r} is outside the range the FMU declares for it, {low} to {high}"
     if port.type.startswith("Float"):
-        bad = [v for v in values if not math.isfinite(v)]
+        bad = [v for v in values if not _finite(v)]
         if bad:
             return f"{_short(bad[0])} is not a finite number; the FMU computes with it (give a finite value)"
     elif port.type in INTEGER_RANGES and port.type != "Enumeration":

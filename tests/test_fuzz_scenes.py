@@ -87,7 +87,7 @@ text = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=12
 numbers = st.one_of(
     st.integers(min_value=-2**64, max_value=2**64),
     st.floats(allow_nan=True, allow_infinity=True),
-    st.sampled_from([0, -1, 1, 1e9, 1e-9, 1e300, -0.0, 2**63, 0.001, 1 / 30, 4.0, 1e-7]),
+    st.sampled_from([0, -1, 1, 1e9, 1e-9, 1e300, -0.0, 2**63, 0.001, 1 / 30, 4.0, 1e-7, 10**400, -10**400]),
 )
 scalars = st.one_of(numbers, st.booleans(), text, st.sampled_from(PATHLIKE))
 keys = st.one_of(st.sampled_from(KEYS), text.filter(bool))
@@ -127,9 +127,12 @@ def mutated_scenes(draw):
     if action == "replace":
         if isinstance(old, (int, float)) and not isinstance(old, bool) and draw(st.booleans()):
             # a plausible-looking change of a number: scaled, negated or made non-finite
-            factor = draw(st.sampled_from([-1, 0, 0.5, 2, 10, 1e3, 1e9, 1e-9, math.nan, math.inf]))
-            new = old * factor if not math.isnan(factor) else math.nan
-            new = int(new) if isinstance(old, int) and math.isfinite(new) else new
+            factor = draw(st.sampled_from([-1, 0, 0.5, 2, 10, 1e3, 1e9, 1e-9, math.nan, math.inf, 10**400]))
+            if factor == 10**400:  # an integer no float holds (TOML integers have no size limit)
+                new = int(old) * factor
+            else:
+                new = old * factor if not math.isnan(factor) else math.nan
+                new = int(new) if isinstance(old, int) and math.isfinite(new) else new
         else:
             new = draw(trees)
         parent[path[-1]] = new

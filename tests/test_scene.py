@@ -344,3 +344,34 @@ def test_deeply_nested_values_are_a_problem_not_a_recursion_error(tmp_path, dept
         load_scene(path)
     (problem,) = info.value.problems
     assert "nested" in problem and "32 levels" in problem, problem
+
+
+@pytest.mark.parametrize("section, component, key, value", [
+    ("fmu", "contact", "parameters.stiffness", 10**400),
+    ("block", "device", "mass", 10**400),
+    ("block", "device", "initial_position", [10**400, 0, 0]),
+    ("source", "operator", "times", [0, 10**400]),
+])
+def test_integers_no_float_holds_are_problems_not_overflow_errors(section, component, key, value):
+    # TOML integers have no size limit: 10**400 made math.isfinite and numpy raise OverflowError
+    data = shipped_data("virtual_wall")
+    table = data[section][component]
+    *parents, last = key.split(".")
+    for part in parents:
+        table = table[part]
+    table[last] = value
+    problems = _problems(data)
+    assert any(p.startswith(f"[{section}.{component}] {key}") and "finite" in p for p in problems), problems
+
+
+@pytest.mark.parametrize("key, value, fragment", [
+    ("mass", 1e-300, "mass must be within 1e-10 to 1000"), ("mass", 1e4, "mass must be within 1e-10 to 1000"),
+    ("damping", 1e300, "damping must be within 0 to 1e+06"),
+    ("initial_position", [20.0, 0.0, 0.0], "initial_position must have a magnitude of at most 10 m"),
+    ("initial_velocity", [0.0, 0.0, -1e3], "initial_velocity must have a magnitude of at most 100 m/s"),
+])
+def test_device_plant_values_that_cannot_be_meant_are_refused(key, value, fragment):
+    # mass = 1e-300 kg ran to "completed" with NaN positions (F/m overflows the exact step)
+    data = shipped_data("virtual_wall")
+    data["block"]["device"][key] = value
+    assert any(p.startswith(f"[block.device] {fragment}") for p in _problems(data))
