@@ -497,8 +497,20 @@ def _check_surface(problems, shape, given: dict) -> dict:
     return out
 
 
+#: A rigid surface lies within this distance of the origin, m: the scenes model a vessel or a
+#: device workspace (0.1-0.2 m); coordinates of kilometres cannot be meant, and far larger ones
+#: overflow the contact model's squared distances.
+SURFACE_MAX_EXTENT = 10.0
+
+
 def _check_surface_size(problems, shape, out: dict) -> None:
-    """The surface's node coordinates must fit a port (MAX_PORT_VALUES): a larger one is a typo."""
+    """The surface's node coordinates must fit a port (MAX_PORT_VALUES) and lie within
+    SURFACE_MAX_EXTENT of the origin: anything else is a typo."""
+    for key in ("center", "start", "end", "size", "radius"):
+        value = out.get(key)
+        if value is not None and float(np.max(np.abs(value))) > SURFACE_MAX_EXTENT:
+            problems.append(f"{key} must be within {SURFACE_MAX_EXTENT:g} m (got {np.asarray(value).tolist()!r}): "
+                            "give lengths in m; the scenes model a vessel or a device workspace of 0.1-0.2 m")
     if shape == "plane" and out.get("divisions") is not None:
         na, nb = out["divisions"]
         nodes, fix = (na + 1) * (nb + 1), "fewer divisions"

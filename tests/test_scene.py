@@ -375,3 +375,13 @@ def test_device_plant_values_that_cannot_be_meant_are_refused(key, value, fragme
     data = shipped_data("virtual_wall")
     data["block"]["device"][key] = value
     assert any(p.startswith(f"[block.device] {fragment}") for p in _problems(data))
+
+
+@pytest.mark.parametrize("scene, source, key, value", [
+    ("virtual_wall", "wall", "size", 1e300), ("virtual_wall", "wall", "center", [0.0, 1e5, 0.0]),
+    ("catheter_tube", "tube", "radius", 20.0), ("catheter_tube", "tube", "end", [0.0, 0.0, -11.0]),
+])
+def test_rigid_surfaces_beyond_any_workspace_are_refused(scene, source, key, value):
+    data = shipped_data(scene)
+    data["source"][source][key] = value
+    assert any(p.startswith(f"[source.{source}] {key} must be within 10 m") for p in _problems(data))
