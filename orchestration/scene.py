@@ -882,7 +882,14 @@ def _load_record(table: dict, components: dict, problems: list[str], declared=fr
             items = _list(value, "[record] surfaces", problems, "write each as a [[record.surfaces]] table")
             for i, item in enumerate(items):
                 surface = _load_surface(f"[record] surfaces[{i}]", item, components, problems, declared)
-                if surface is not None:
+                if surface is None:
+                    continue
+                # <name>.pvd and the folder <name>/ beside <component>.csv and units.json
+                taken = {s.name for s in surfaces} | {k for k in table if k not in ("surfaces", "plots")} | {"units"}
+                if surface.name in taken:
+                    problems.append(f"[record] surfaces[{i}] name: {surface.name!r} is already the name of another "
+                                    "recorded file (a surface, a component's CSV or units); give another name")
+                else:
                     surfaces.append(surface)
         elif key == "plots":
             items = _list(value, "[record] plots", problems, "write each figure as a [[record.plots]] table")
@@ -935,12 +942,30 @@ def _load_surface(where: str, item, components: dict, problems: list[str], decla
         if not isinstance(item.get(role), str) or item.get(role) not in comp.ports:
             problems.append(f"{where} {role}: {comp.name} has no port {_short(item.get(role))}")
             ok = False
+            continue
+        # what the recording needs (recording.write_surface): flat (n, 3) numbers, triangles in integers
+        port = comp.ports[item[role]]
+        integer = port.type in INTEGER_RANGES and port.type != "Enumeration"
+        if port.type not in NUMERIC_TYPES or port.type == "Boolean" or port.size % 3 or (role == "triangles"
+                                                                                          and not integer):
+            kind = "integer node ids, 3 per triangle" if role == "triangles" else "numbers, 3 per node (x, y, z)"
+            problems.append(f"{where} {role}: {comp.name}.{port.name} is {port.describe()}; {role} are {kind}")
+            ok = False
+    nodes = comp.ports[item["positions"]].size // 3 if ok else None
     point_data = _strings(_list(item.get("point_data", []), f"{where} point_data", problems, "of port names"),
                           f"{where} point_data", problems, "a port name")
     for extra in point_data:
         if extra not in comp.ports:
             problems.append(f"{where} point_data: {comp.name} has no port {extra!r}")
             ok = False
+        elif nodes is not None and comp.ports[extra].size not in (nodes, 3 * nodes):
+            problems.append(f"{where} point_data: {comp.name}.{extra} holds {comp.ports[extra].size} values; point "
+                            f"data has one or three per node ({nodes} or {3 * nodes})")
+            ok = False
+    if comp.is_continuous and not comp.is_fmu:
+        problems.append(f"{where}: {comp.name} is a continuous source, it has no steps to record frames at; "
+                        "record the surface of a stepped component")
+        ok = False
     every = item.get("every", 1)
     if not isinstance(every, int) or isinstance(every, bool) or every < 1:
         problems.append(f"{where} every: must be a positive integer, a frame every so many steps (got {_short(every)})")

@@ -385,3 +385,31 @@ def test_rigid_surfaces_beyond_any_workspace_are_refused(scene, source, key, val
     data = shipped_data(scene)
     data["source"][source][key] = value
     assert any(p.startswith(f"[source.{source}] {key} must be within 10 m") for p in _problems(data))
+
+
+@pytest.mark.parametrize("surface, fragment", [
+    ({"component": "contact", "positions": "stiffness", "triangles": "surface_triangles"},
+     "[record] surfaces[0] positions: contact.stiffness is parameter Float64 scalar [N/m]; positions are numbers"),
+    ({"component": "contact", "positions": "tissue_positions", "triangles": "tool_force"},
+     "[record] surfaces[0] triangles: contact.tool_force is output Float64 3 [N]; triangles are integer node ids"),
+    ({"component": "contact", "positions": "tissue_positions", "triangles": "surface_triangles",
+      "point_data": ["tool_force"]}, "[record] surfaces[0] point_data: contact.tool_force holds 3 values"),
+    ({"component": "wall", "positions": "positions", "triangles": "triangles"},
+     "[record] surfaces[0]: wall is a continuous source, it has no steps to record frames at"),
+    ({"component": "contact", "positions": "tissue_positions", "triangles": "surface_triangles", "name": "device"},
+     "[record] surfaces[0] name: 'device' is already the name of another recorded file"),
+])
+def test_surfaces_validate_what_the_recording_needs(surface, fragment):
+    # each of these passed validate and failed the run (a reshape error, a KeyError) or clashed with a file
+    data = shipped_data("virtual_wall")
+    data["record"]["surfaces"] = [surface]
+    problems = _problems(data)
+    assert any(p.startswith(fragment) for p in problems), problems
+
+
+def test_a_surface_of_the_right_shape_is_accepted():
+    data = shipped_data("virtual_wall")
+    data["record"]["surfaces"] = [{"component": "contact", "positions": "tissue_positions",
+                                   "triangles": "surface_triangles", "name": "wall_seen_by_contact"}]
+    scene = scene_from_dict(data, SCENE_DIR, SCENE_DIR / "x.toml")
+    assert [s.name for s in scene.surfaces] == ["wall_seen_by_contact"]
