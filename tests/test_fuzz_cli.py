@@ -25,7 +25,7 @@ from hypothesis import event, given, note
 from hypothesis import strategies as st
 
 from orchestration import cli
-from orchestration.scene import MAX_RUN_STEPS, SCENE_DIR
+from orchestration.scene import SCENE_DIR
 
 REPO = Path(__file__).resolve().parent.parent
 CHEAP_SCENE = "virtual_wall"  # one FMU and a device block at 1 kHz: the cheapest shipped scene to run
@@ -174,8 +174,6 @@ def test_run_with_random_arguments_exits_0_only_with_a_completed_run_in_out(work
         duration = _requested_duration(argv)
         assert duration is not None and math.isclose(summary["simulated_time_s"], float(duration), rel_tol=1e-12)
         assert (out_dir / "contact.csv").is_file()
-        # a run stays within the run-size limit: a duration of at most 50 ms here
-        assert summary["simulated_time_s"] * 2000 <= MAX_RUN_STEPS
     elif code == cli.EXIT_USAGE and out_choice == "fresh":
         # a refused run writes no results
         assert not (out_dir / "summary.json").exists()
