@@ -90,7 +90,7 @@ numbers = st.one_of(
     st.sampled_from([0, -1, 1, 1e9, 1e-9, 1e300, -0.0, 2**63, 0.001, 1 / 30, 4.0, 1e-7, 10**400, -10**400]),
 )
 scalars = st.one_of(numbers, st.booleans(), text, st.sampled_from(PATHLIKE))
-keys = st.one_of(st.sampled_from(KEYS), text.filter(bool))
+keys = st.one_of(st.sampled_from(KEYS), st.sampled_from([p for p in PATHLIKE if p]), text.filter(bool))
 trees = st.recursive(scalars, lambda children: st.one_of(st.lists(children, max_size=4),
                                                           st.dictionaries(keys, children, max_size=4)),
                      max_leaves=12)
@@ -270,6 +270,16 @@ def test_mutated_shipped_scenes_are_refused_naming_the_key_or_its_table_or_sound
     # The message names the changed key, or (for a value whose consequences show elsewhere, e.g. a
     # structural parameter that resizes an array) the table or component it is in.
     assert any(n in problem for n in names for problem in exc.problems), (names, exc.problems)
+
+
+@given(case=mutated_scenes())
+def test_mutated_shipped_scenes_through_validate_in_a_subprocess(case):
+    name, data, _ = case
+    path = write_bytes(toml_text(data).encode())
+    try:
+        check_validate_subprocess(path)
+    finally:
+        path.unlink()
 
 
 @given(case=mutated_scenes())
