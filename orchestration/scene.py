@@ -565,8 +565,9 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
         if step is not None and "internal_step" in ports:
             # the project's FMUs: the scene's step is the model's own rate
             given = parameters.get("internal_step")
-            if given is not None and abs(float(given) - float(step)) > 1e-12 * float(step):
-                problems.append(f"{where} parameters.internal_step = {given} differs from step = {step_value}; "
+            number = isinstance(given, (int, float)) and not isinstance(given, bool) and _finite(given)
+            if given is not None and (not number or abs(float(given) - float(step)) > 1e-12 * float(step)):
+                problems.append(f"{where} parameters.internal_step = {_short(given)} differs from step = {step_value}; "
                                 "remove the parameter (the master sets it from step)")
             parameters["internal_step"] = float(step)
         elif step is not None and fixed is not None and step % fixed != 0:

@@ -138,12 +138,12 @@ def mutated_scenes(draw):
         parent[path[-1]] = new
     elif action == "delete":
         del parent[path[-1]]
-    else:
-        target = parent[path[-1]] if isinstance(parent[path[-1]], dict) else parent
+    else:  # add: an item to a list, or a new key to a table (the one at path, else the one holding it)
+        target = parent[path[-1]] if isinstance(parent[path[-1]], (dict, list)) else parent
         if isinstance(target, list):
             target.append(draw(trees))
         else:
-            target[draw(keys)] = draw(trees)
+            target[draw(keys.filter(lambda k: k not in target))] = draw(trees)
     note(f"{name}: {action} at {path}")
     # what a message may name for this change: the keys on the path, and those of a removed table
     # (deleting [source] makes "operator" unknown)

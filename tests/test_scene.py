@@ -413,3 +413,13 @@ def test_a_surface_of_the_right_shape_is_accepted():
                                    "triangles": "surface_triangles", "name": "wall_seen_by_contact"}]
     scene = scene_from_dict(data, SCENE_DIR, SCENE_DIR / "x.toml")
     assert [s.name for s in scene.surfaces] == ["wall_seen_by_contact"]
+
+
+@pytest.mark.parametrize("value", [[0.001], "1/30", True, 10**400, math.nan])
+def test_internal_step_of_the_wrong_type_is_a_problem(value):
+    # found by the scene fuzzer: internal_step = [list] was a TypeError in the step comparison
+    data = shipped_data("virtual_wall")
+    data["fmu"]["contact"]["parameters"]["internal_step"] = value
+    problems = _problems(data)
+    assert any(p.startswith("[fmu.contact] parameters.internal_step = ") and "remove the parameter" in p
+               for p in problems), problems
