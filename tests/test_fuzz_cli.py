@@ -267,3 +267,16 @@ def test_a_short_run_through_the_entry_point_completes_into_out(fmus_in_repo, tm
     assert result.returncode == 0, result.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "completed" and summary["simulated_time_s"] == 0.02
+
+
+def test_a_run_that_fails_exits_1_naming_the_fmu_and_keeps_its_results(fmus_in_repo, tmp_path):
+    # exit 1: the scene is valid, the FMU refuses a value only it knows (no min/max or enumeration
+    # in its modelDescription.xml for the scene to check)
+    out = tmp_path / "failed"
+    result = subprocess.run([sys.executable, "-m", "orchestration", "run", CHEAP_SCENE, "--duration", "0.01",
+                             "--set", "contact.tool=\"bogus\"", "--no-vtu", "--quiet", "--out", str(out)],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert "error: contact: fmi3ExitInitializationMode" in result.stderr and "tool must be one of" in result.stderr
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"
