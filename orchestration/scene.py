@@ -947,8 +947,8 @@ def _load_surface(where: str, item, components: dict, problems: list[str], decla
         # what the recording needs (recording.write_surface): flat (n, 3) numbers, triangles in integers
         port = comp.ports[item[role]]
         integer = port.type in INTEGER_RANGES and port.type != "Enumeration"
-        if port.type not in NUMERIC_TYPES or port.type == "Boolean" or port.size % 3 or (role == "triangles"
-                                                                                          and not integer):
+        if port.type not in NUMERIC_TYPES or port.type == "Boolean" or port.size % 3 or port.size == 0 or (
+                role == "triangles" and not integer):
             kind = "integer node ids, 3 per triangle" if role == "triangles" else "numbers, 3 per node (x, y, z)"
             problems.append(f"{where} {role}: {comp.name}.{port.name} is {port.describe()}; {role} are {kind}")
             ok = False

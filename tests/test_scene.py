@@ -407,6 +407,15 @@ def test_surfaces_validate_what_the_recording_needs(surface, fragment):
     assert any(p.startswith(fragment) for p in problems), problems
 
 
+def test_a_surface_of_no_nodes_is_refused():
+    data = shipped_data("virtual_wall")
+    data["fmu"]["contact"]["parameters"]["n_surface_nodes"] = 0
+    data["record"]["surfaces"] = [{"component": "contact", "positions": "tissue_positions",
+                                   "triangles": "surface_triangles"}]
+    assert any(p.startswith("[record] surfaces[0] positions: contact.tissue_positions is input Float64 0x3")
+               for p in _problems(data))
+
+
 def test_a_surface_of_the_right_shape_is_accepted():
     data = shipped_data("virtual_wall")
     data["record"]["surfaces"] = [{"component": "contact", "positions": "tissue_positions",
