@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .ports import PortInfo
+from .ports import MAX_PORT_VALUES, PortInfo
 
 try:
     from .errors import FmuCallError
@@ -60,7 +60,14 @@ class BlockConfigError(ValueError):
 # Each checker appends readable problems to `problems` and returns the clean value (or None).
 
 def _is_real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+    """A number a float can hold: TOML integers have no size limit, and 10**400 overflows a float."""
+    if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
+        return False
+    try:
+        float(value)
+    except OverflowError:
+        return False
+    return True
 
 
 def _is_int(value) -> bool:
@@ -88,6 +95,9 @@ def _int(problems, key, value, fix, *, low=1):
 def _vector(problems, key, value, n, fix):
     try:
         arr = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # an integer no float holds (TOML integers have no size limit)
+        problems.append(f"{key} must hold finite numbers (got {value!r}): {fix}")
+        return None
     except (TypeError, ValueError):
         arr = None
     if arr is None or arr.shape != (n,) or isinstance(value, (str, bytes)) or (
@@ -483,7 +493,34 @@ def _check_surface(problems, shape, given: dict) -> dict:
         out["n_circumferential"] = _int(problems, "n_circumferential", opts["n_circumferential"],
                                         "nodes around each ring, e.g. 32", low=3)
         out["n_axial"] = _int(problems, "n_axial", opts["n_axial"], "segments along the axis, e.g. 20", low=1)
+    _check_surface_size(problems, shape, out)
     return out
+
+
+#: A rigid surface lies within this distance of the origin, m: the scenes model a vessel or a
+#: device workspace (0.1-0.2 m); coordinates of kilometres cannot be meant, and far larger ones
+#: overflow the contact model's squared distances.
+SURFACE_MAX_EXTENT = 10.0
+
+
+def _check_surface_size(problems, shape, out: dict) -> None:
+    """The surface's node coordinates must fit a port (MAX_PORT_VALUES) and lie within
+    SURFACE_MAX_EXTENT of the origin: anything else is a typo."""
+    for key in ("center", "start", "end", "size", "radius"):
+        value = out.get(key)
+        if value is not None and float(np.max(np.abs(value))) > SURFACE_MAX_EXTENT:
+            problems.append(f"{key} must be within {SURFACE_MAX_EXTENT:g} m (got {np.asarray(value).tolist()!r}): "
+                            "give lengths in m; the scenes model a vessel or a device workspace of 0.1-0.2 m")
+    if shape == "plane" and out.get("divisions") is not None:
+        na, nb = out["divisions"]
+        nodes, fix = (na + 1) * (nb + 1), "fewer divisions"
+    elif shape == "tube" and out.get("n_circumferential") is not None and out.get("n_axial") is not None:
+        nodes, fix = out["n_circumferential"] * (out["n_axial"] + 1), "fewer n_circumferential or n_axial"
+    else:
+        return
+    if 3 * nodes > MAX_PORT_VALUES:
+        problems.append(f"the surface would have {nodes} nodes, more than {MAX_PORT_VALUES // 3} ({MAX_PORT_VALUES} "
+                        f"coordinates, the most a port holds); give {fix}")
 
 
 class RigidSurfaceSource(Source):
@@ -571,6 +608,30 @@ _PLANT_INPUTS = ("operator_force", "wall_force")
 _PLANT_OUTPUTS = ("position", "velocity", "wall_energy", "operator_energy", "dissipated_energy", "kinetic_energy")
 
 
+#: Plausibility limits of the device plant: values outside cannot be meant, and some overflow the
+#: exact step (mass = 1e-300 kg makes F/m and the energy integrals inf, then NaN, silently).
+#: mass: 1e-10 kg is 100x below the lightest device the stability study models (the passivity worst
+#: case, m = 1e-3 bound T: about 1.6e-8 kg), 1000 kg far above any haptic device (0.01-1 kg).
+#: damping: 1e6 N s/m is 1e5 times a desktop device's. Initial state: a desktop device's workspace
+#: is about 0.2 m and its speeds below 1 m/s; 10 m and 100 m/s cannot be meant.
+PLANT_LIMITS = {"mass": (1e-10, 1e3), "damping": (0.0, 1e6)}
+PLANT_MAX_POSITION = 10.0       # m, |initial_position|
+PLANT_MAX_SPEED = 100.0         # m/s, |initial_velocity|
+
+
+def _check_plant_limits(problems, out: dict) -> None:
+    for key, (low, high) in PLANT_LIMITS.items():
+        value = out.get(key)
+        if value is not None and not low <= value <= high:
+            problems.append(f"{key} must be within {low:g} to {high:g} (got {value!r}): see blocks.PLANT_LIMITS for why")
+    for key, limit, unit in (("initial_position", PLANT_MAX_POSITION, "m"),
+                             ("initial_velocity", PLANT_MAX_SPEED, "m/s")):
+        value = out.get(key)
+        if value is not None and float(np.linalg.norm(value)) > limit:
+            problems.append(f"{key} must have a magnitude of at most {limit:g} {unit} (got {value.tolist()!r}): "
+                            "a desktop haptic device's workspace is about 0.2 m")
+
+
 def _check_plant(problems, values: dict) -> dict:
     out = {}
     checks = {
@@ -585,6 +646,7 @@ def _check_plant(problems, values: dict) -> dict:
         if isinstance(value, np.ndarray) and value.size == 1 and key in ("mass", "damping", "step"):
             value = float(value.reshape(-1)[0])
         out[key] = checks[key](value)
+    _check_plant_limits(problems, out)
     return out
 
 
@@ -892,7 +954,7 @@ def make_block(name: str, table: dict, base_dir: Path):
     Raises ``BlockConfigError`` listing every problem at once (unknown, missing or invalid keys).
     """
     kind = table.get("kind")
-    if kind not in BLOCK_KINDS:
+    if not isinstance(kind, str) or kind not in BLOCK_KINDS:
         got = "no 'kind' key" if "kind" not in table else f"kind = {kind!r}"
         raise BlockConfigError([f"kind must be one of {list(BLOCK_KINDS)} ({got})"], name)
     opts = {k: v for k, v in table.items() if k != "kind"}

@@ -14,6 +14,10 @@ from pathlib import Path
 logger = logging.getLogger("orchestration")
 
 DEFAULT_SCENE = "aaa_endovascular"
+#: Exit codes: 0 the command did what was asked (a run "completed" or "terminated" by an FMU, its
+#: results in the result folder); 1 a run or study started and failed (what was recorded is kept);
+#: 2 nothing was run: a usage or scene error, with "error: ..." on stderr; 130 / 143 a run stopped
+#: by Ctrl-C / SIGTERM (see RUN_EPILOG).
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 EXIT_SIGINT, EXIT_SIGTERM = 130, 143  # 128 + the signal, as a shell reports it (orchestration.stopping)
 
@@ -55,20 +59,82 @@ def _cmd_build(args) -> int:
 
 
 def parse_assignments(items: list[str]) -> dict:
-    """``["contact.stiffness=800", "scene.duration=2"]`` -> typed overrides (TOML value syntax)."""
+    """``["contact.stiffness=800", "scene.duration=2"]`` -> typed overrides (TOML value syntax).
+
+    ValueError names the item and the fix; whether the parameter exists is the scene's check.
+    """
     import tomllib
 
     overrides = {}
     for item in items or []:
-        if "=" not in item:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or key.count(".") != 1 or not all(part.strip() for part in key.split(".")):
             raise ValueError(f"--set {item!r}: write component.parameter=value, e.g. contact.stiffness=800")
-        key, text = item.split("=", 1)
+        if any(c in text for c in "\n\r\0"):
+            # "v = 1\nw = 2" would parse as TOML and silently drop the rest
+            raise ValueError(f"--set {item!r}: the value has a line break or NUL; give one TOML value, "
+                             "e.g. 800, \"probe\" or [0.0, 0.1]")
+        if key in overrides:
+            raise ValueError(f"--set {key}: given twice; give each parameter once")
         try:
             value = tomllib.loads(f"v = {text}")["v"]
         except tomllib.TOMLDecodeError:
             value = text  # a bare word: a string
-        overrides[key.strip()] = value
+        overrides[key] = value
     return overrides
+
+
+def _duration(text: str):
+    """``--duration``: a finite positive time in seconds, exact ("0.5", "1e-3", "1/30")."""
+    from .scene import parse_time
+
+    problems: list[str] = []
+    value = parse_time(text, "--duration", problems)
+    if problems:
+        raise argparse.ArgumentTypeError(problems[0].removeprefix("--duration: "))
+    return value
+
+
+def _workers(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of processes, e.g. --workers 2") from None
+    if not 1 <= value <= 256:
+        raise argparse.ArgumentTypeError(f"{value} processes: give 1 to 256 (default: the CPU count)")
+    return value
+
+
+def _scheduler(text: str) -> str:
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        port = None
+        parts = None
+    if parts is None or not parts.scheme or not parts.hostname or port is None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Dask scheduler address; write tcp://host:8786")
+    return text
+
+
+EMPTY_OUT = "--out: empty; give a folder, e.g. --out results/mine"  # Path("") would be ".", the current folder
+
+
+def _out_problem(out: str) -> str | None:
+    """Why ``--out`` cannot be a study's result folder, or None; creates it (as the study would) to know."""
+    if not out.strip():
+        return EMPTY_OUT
+    path = Path(out)
+    try:
+        if path.exists() and not path.is_dir():
+            return f"--out {out}: exists and is not a folder; give a folder for the results"
+        path.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:
+        return f"--out {out!r}: cannot create the result folder ({getattr(exc, 'strerror', None) or exc})"
+    return None
 
 
 def _load(scene_arg: str, overrides: dict | None = None):
@@ -86,6 +152,8 @@ def _cmd_validate(args) -> int:
 
     try:
         overrides = parse_assignments(args.set)
+        if args.duration is not None:
+            overrides["duration"] = args.duration
         scene = load_scene(args.scene, overrides)
     except (SceneError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -114,7 +182,10 @@ def _run_command(args, stop) -> int:
 
     # An --out that cannot be used is refused first, before a build or a scene load can take a
     # minute (the default folder needs the scene's name: it is checked once the scene is loaded).
-    folder = ResultFolder(args.out) if args.out else None
+    if args.out is not None and not args.out.strip():
+        print(f"error: {EMPTY_OUT}", file=sys.stderr)
+        return EXIT_USAGE
+    folder = ResultFolder(args.out) if args.out is not None else None
     try:
         if folder is not None:
             folder.acquire()
@@ -145,6 +216,8 @@ def _prepare_and_run(args, stop, folder) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if args.duration is not None:  # checked with the scene: whole steps, and the run-size limit
+        overrides["duration"] = args.duration
     scene = _load(args.scene, overrides)
     if scene is None:
         return EXIT_USAGE
@@ -161,8 +234,8 @@ def _prepare_and_run(args, stop, folder) -> int:
 def _simulate(args, stop, scene, folder, Simulation) -> int:
     try:
         simulation = Simulation(scene, folder.out, hosting=args.hosting, realtime=args.realtime or None,
-                                progress=not args.quiet, duration=args.duration, vtu=not args.no_vtu, folder=folder)
-    except ValueError as exc:  # a --duration that does not fit the steps
+                                progress=not args.quiet, vtu=not args.no_vtu, folder=folder)
+    except ValueError as exc:  # Simulation checks the duration again (the scene did: not reached)
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if not args.quiet:
@@ -192,6 +265,10 @@ def _cmd_study(args) -> int:
     from .build import BuildError, ensure_fmus_built
     from .studies import run_study
 
+    problem = _out_problem(args.out) if args.out is not None else None
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         ensure_fmus_built(args.quiet)
     except BuildError as exc:
@@ -221,12 +298,15 @@ def main(argv: list[str] | None = None) -> int:
     p_val = sub.add_parser("validate", help="check a scene and list every problem")
     p_val.add_argument("scene", help="scene file, or the name of a shipped scene (scenes/<name>.toml)")
     p_val.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
+    p_val.add_argument("--duration", type=_duration, default=None,
+                       help="check this duration in s instead of the scene's, as `run --duration` would run it")
     p_val.set_defaults(func=_cmd_validate)
 
     p_run = sub.add_parser("run", help="run a scene (default: the AAA endovascular scene; builds the FMUs if needed)",
                            epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p_run.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help=f"scene file or name (default {DEFAULT_SCENE})")
-    p_run.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scene's)")
+    p_run.add_argument("--duration", type=_duration, default=None,
+                       help="simulated seconds, e.g. 0.5 or 1/30 (default: the scene's)")
     p_run.add_argument("--out", default=None, help="result folder (default results/<scene>); replaced only by a "
                                                   "run that completes, see below")
     p_run.add_argument("--hosting", choices=("in-process", "out-of-process"), default=None,
@@ -242,24 +322,26 @@ def main(argv: list[str] | None = None) -> int:
     p_study.add_argument("name", choices=("tradeoff", "stability", "extremes"))
     p_study.add_argument("--out", default=None, help="result folder (default results/study_<name>)")
     p_study.add_argument("--quick", action="store_true", help="a reduced sweep (what the tests run)")
-    p_study.add_argument("--workers", type=int, default=None, help="parallel processes (default: CPU count)")
-    p_study.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p_study.add_argument("--workers", type=_workers, default=None, help="parallel processes (default: CPU count)")
+    p_study.add_argument("--scheduler", type=_scheduler, default=None,
+                         help="Dask scheduler address, e.g. tcp://host:8786")
     p_study.add_argument("--fresh", action="store_true",
                          help="run every point again (default: resume, keeping the points finished in --out)")
     p_study.add_argument("--quiet", action="store_true", help="no progress bar")
     p_study.set_defaults(func=_cmd_study)
 
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = parser.parse_args(argv)
-    except SystemExit:
+        if args.command is None:
+            # No command: the main job (top-level options such as -v still apply).
+            args = parser.parse_args([*argv, "run"])
+    except SystemExit as exc:  # argparse: usage errors exit 2 after "error: ..."; --help exits 0
         _release_stop_signals()
-        raise
-    if args.command not in (None, "run"):
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    if args.command != "run":
         # Only a run stops on a flag; the other commands get Ctrl-C back as usual.
         _release_stop_signals()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    if args.command is None:
-        # No arguments: the main job.
-        args = parser.parse_args(["run", *(argv or [])])
     return args.func(args)

@@ -33,6 +33,10 @@ INTEGER_RANGES = {
     "Int32": (-2**31, 2**31 - 1), "UInt32": (0, 2**32 - 1), "Int64": (-2**63, 2**63 - 1), "UInt64": (0, 2**64 - 1),
     "Enumeration": (-2**63, 2**63 - 1),
 }
+#: The most values one port may hold (an array sized by structural parameters or a block's options).
+#: The AAA wall has 2688 surface nodes (8064 coordinates); a port of more than a million values is a
+#: typo and would exhaust memory when the FMU or block allocates it.
+MAX_PORT_VALUES = 1_000_000
 #: Largest magnitude below which every integer is exact in each float type.
 _FLOAT_EXACT = {"Float32": 2**24, "Float64": 2**53}
 
@@ -52,6 +56,8 @@ class PortInfo:
     description: str = ""
     declared_type: str | None = None            # the TypeDefinitions entry it is declared with
     items: tuple[tuple[str, int], ...] = ()     # an Enumeration's items (name, value)
+    minimum: float | None = None                # the declared min and max (numbers only), None if not declared
+    maximum: float | None = None
 
     @property
     def size(self) -> int:
@@ -156,6 +162,19 @@ def _start_value(variable):
     return start
 
 
+def _bound(variable, which: str) -> float | None:
+    """A numeric variable's declared ``min``/``max`` (its own, else its declared type's), or None."""
+    value = getattr(variable, which, None)
+    if value is None and variable.declaredType is not None:
+        value = getattr(variable.declaredType, which, None)
+    if value is None or variable.type not in NUMERIC_TYPES or variable.type == "Boolean":
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
 def read_fmu(path: Path | str, parameters: dict | None = None) -> FmuDescription:
     """Describe the FMU at ``path``; structural parameters in ``parameters`` override start values.
 
@@ -200,6 +219,7 @@ def read_fmu(path: Path | str, parameters: dict | None = None) -> FmuDescription
             description=v.description or "",
             declared_type=declared.name if declared is not None else None,
             items=tuple((item.name, int(item.value)) for item in declared.items) if declared is not None else (),
+            minimum=_bound(v, "min"), maximum=_bound(v, "max"),
         )
     step = md.defaultExperiment.stepSize if md.defaultExperiment else None
     cs = md.coSimulation

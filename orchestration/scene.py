@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -27,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from . import transitions as tr
-from .ports import (NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo, conversion_problem,
-                    parse_binary, read_fmu)
+from .ports import (INTEGER_RANGES, MAX_PORT_VALUES, NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo,
+                    conversion_problem, parse_binary, read_fmu)
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +46,34 @@ _FMU_KEYS = {"path", "step", "parameters", "hosting"}
 _CONNECTION_KEYS = {"from", "to", "transition", "ordering"}
 _SUMMARY_KEYS = {"peaks", "energy", "warnings", "deadlines"}
 _SURFACE_KEYS = {"component", "positions", "triangles", "every", "point_data", "name"}
+_PLOT_KEYS = {"file", "title", "panels"}
+_PANEL_KEYS = {"ylabel", "series"}
+_SERIES_KEYS = {"stream", "column", "label", "norm"}
+
+# -- plausibility limits: values no scene of this project can mean ---------------------------------
+#: The shortest communication step, s. The fastest loop here is the 1 kHz haptic loop (studies go
+#: down to 4 kHz); a step below 1 us is a typo (a unit slip) and would take hours per simulated second.
+MIN_STEP = Fraction(1, 10**6)
+#: The longest communication step, s. The slowest component, the tissue, steps at 30 Hz (studies
+#: down to 10 Hz); a step above 1 s cannot track a haptic interaction at all.
+MAX_STEP = Fraction(1)
+#: The most component steps one run may take (the sum over stepped components of duration / step).
+#: This machine makes about 3500 steps per second of wall time (the default scene: 8120 steps in
+#: 2.3 s), so the limit is about 50 minutes of computing: a longer run is almost always a duration
+#: in ms typed as s. It is refused, not warned about, so that `validate` and the exit code stop a
+#: script or study before it blocks a machine for hours; split a genuinely long session into runs.
+MAX_RUN_STEPS = 10_000_000
+#: The deepest nesting of tables and lists a scene may have. The format nests at most 5 levels
+#: ([record] plots, panels, series, a table); far deeper nesting is no scene, and would exhaust
+#: the interpreter's recursion limit (the TOML parser's, and ours) with a RecursionError.
+MAX_NESTING = 32
+
+#: A scene name names its result folder (results/<name>): a plain name, never a path.
+_SCENE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}")
+#: A component name is a file name (<component>.csv) and the first part of "component.port".
+_COMPONENT_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]{0,63}")
+#: A file the scene asks the recording to write (a figure, a surface series) inside the result folder.
+_FILE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}")
 
 
 class SceneError(ValueError):
@@ -144,21 +173,48 @@ def parse_time(value, where: str, problems: list[str], *, allow_zero: bool = Fal
     try:
         if isinstance(value, bool):
             raise TypeError
-        if isinstance(value, (int, float)):
+        if isinstance(value, Fraction):
+            result = value
+        elif isinstance(value, (int, float)):
             if not np.isfinite(value):
                 raise ValueError
             result = float_time(value) if isinstance(value, float) else Fraction(value)
         elif isinstance(value, str):
-            result = Fraction(value.strip())
+            result = _parse_time_text(value)
         else:
             raise TypeError
-    except (TypeError, ValueError, ZeroDivisionError):
-        problems.append(f"{where}: {value!r} is not a time in seconds; write a number (0.001) or a ratio (\"1/30\")")
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        problems.append(f"{where}: {value!r} is not a time in seconds; write a finite number (0.001) "
+                        "or a ratio (\"1/30\")")
         return None
     if result < 0 or (result == 0 and not allow_zero):
         problems.append(f"{where}: must be positive (got {value!r} s)")
         return None
     return result
+
+
+def _parse_time_text(text: str) -> Fraction:
+    """ "0.001", "1e-3" or "1/30" as a Fraction; ValueError otherwise. Decimals go through a float
+    first: ``Fraction("1e-999999999")`` would compute 10**999999999 and never return."""
+    text = text.strip()
+    if "/" in text:
+        numerator, denominator = text.split("/", 1)
+        return Fraction(int(numerator), int(denominator))
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(text)
+    return float_time(value)
+
+
+def step_problem(step: Fraction) -> str | None:
+    """Why ``step`` cannot be meant as a communication step (outside MIN_STEP..MAX_STEP), or None."""
+    if step < MIN_STEP:
+        return (f"{format_time(step).strip(chr(34))} s is shorter than {MIN_STEP} s, the shortest step a component "
+                f"of this project can mean (the haptic loop runs at 1 kHz); give the step in seconds, e.g. 0.001")
+    if step > MAX_STEP:
+        return (f"{float(step):g} s is longer than {MAX_STEP} s, the longest step a component of this project can "
+                "mean (the tissue runs at 30 Hz); give the step in seconds, e.g. \"1/30\"")
+    return None
 
 
 def float_time(value: float) -> Fraction:
@@ -257,86 +313,202 @@ def _type_of(port: PortInfo) -> str:
 def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     """Read and check a scene; raise ``SceneError`` listing every problem.
 
+    ``path`` is a TOML file, or the bare name of a shipped scene (``scenes/<name>.toml``).
     ``overrides`` maps ``"component.parameter"`` (``"component.step"`` for the step,
-    ``"scene.duration"``) to values that replace the file's, as studies and ``--set`` do.
+    ``"scene.duration"`` or ``"duration"``) to values that replace the file's, as studies, ``--set``
+    and ``--duration`` do.
     """
-    path = Path(path)
-    if not path.suffix and not path.exists():
-        candidate = SCENE_DIR / f"{path.name}.toml"
-        if candidate.exists():
-            path = candidate
-    if not path.is_file():
+    try:
+        path = Path(path)
+        # Only a bare name means a shipped scene: "x/virtual_wall" is a path, not that scene.
+        if not path.suffix and len(path.parts) == 1 and not path.exists():
+            candidate = SCENE_DIR / f"{path.name}.toml"
+            if candidate.is_file():
+                path = candidate
+        found = path.is_file()
+    except (TypeError, ValueError, OSError) as exc:  # a NUL byte, a name too long for the file system
+        raise SceneError(None, [f"scene {str(path)!r}: not a usable file name ({exc})"]) from None
+    if not found:
         shipped = ", ".join(sorted(p.stem for p in SCENE_DIR.glob("*.toml")))
         raise SceneError(path, [f"scene file not found; shipped scenes: {shipped} (or give a path to a .toml file)"])
     try:
-        data = tomllib.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(path, [f"not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}): "
+                                "TOML files are UTF-8; save the file as UTF-8"]) from None
+    except OSError as exc:
+        raise SceneError(path, [f"cannot read the file: {exc.strerror or exc}"]) from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(path, [f"TOML syntax error: {exc}"]) from None
+    except RecursionError:
+        raise SceneError(path, [f"TOML syntax error: tables or lists nested too deeply to parse; a scene nests at most "
+                                f"{MAX_NESTING} levels"]) from None
     return scene_from_dict(data, path.parent, path, overrides)
+
+
+def _too_deep(data) -> str | None:
+    """Where ``data`` nests deeper than MAX_NESTING ("fmu.x.parameters.y[0]..."), or None; iterative,
+    so that the check itself cannot exhaust the recursion limit."""
+    stack = [(data, "", 0)]
+    while stack:
+        node, where, depth = stack.pop()
+        if depth > MAX_NESTING:
+            return where[:60] + ("..." if len(where) > 60 else "")
+        if isinstance(node, dict):
+            stack.extend((v, f"{where}.{k}" if where else str(k), depth + 1) for k, v in node.items())
+        elif isinstance(node, list):
+            stack.extend((v, f"{where}[{i}]", depth + 1) for i, v in enumerate(node))
+    return None
+
+
+def _table(value, where: str, problems: list[str], fix: str) -> dict:
+    """``value`` if it is a table; else a problem and an empty table (so checking goes on)."""
+    if isinstance(value, dict):
+        return value
+    problems.append(f"{where}: must be a table ({fix}), got {type(value).__name__} {_short(value)}")
+    return {}
+
+
+def _list(value, where: str, problems: list[str], fix: str) -> list:
+    if isinstance(value, list):
+        return value
+    problems.append(f"{where}: must be a list ({fix}), got {type(value).__name__} {_short(value)}")
+    return []
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _strings(values: list, where: str, problems: list[str], what: str) -> list[str]:
+    """The strings of ``values``; a problem for each item that is not one."""
+    good = []
+    for i, item in enumerate(values):
+        if isinstance(item, str):
+            good.append(item)
+        else:
+            problems.append(f"{where}[{i}]: {_short(item)} is not {what} (write it in quotes)")
+    return good
+
+
+def scene_name_problem(name) -> str | None:
+    """Why ``name`` cannot name a scene (and its result folder results/<name>), or None."""
+    if not isinstance(name, str):
+        return f"must be a string (got {_short(name)})"
+    if not _SCENE_NAME.fullmatch(name):
+        return (f"{_short(name)} is not a plain name: a scene name names its result folder results/<name>, so it "
+                "is 1-100 letters, digits, '_', '-' or '.', not starting with '.' or '-' (no '/', no path); "
+                "choose the folder with `run --out DIR` instead")
+    return None
+
+
+def _component_name_problem(section: str, name: str) -> str | None:
+    if not _COMPONENT_NAME.fullmatch(name) or name == "scene":
+        return (f"[{section}.{name}]: {name!r} is not a usable component name: write 1-64 letters, digits, '_' or "
+                "'-', starting with a letter or '_' (it names <component>.csv and the \"component.port\" of "
+                "connections; 'scene' is reserved for scene.duration)")
+    return None
 
 
 def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overrides: dict | None = None) -> Scene:
     """Build and check a scene from parsed TOML (``base_dir`` resolves relative paths)."""
     problems: list[str] = []
+    deep = _too_deep(data)
+    if deep is not None:
+        raise SceneError(path, [f"{deep}: tables or lists nested more than {MAX_NESTING} levels deep; a scene "
+                                "nests at most 5 (see scenes/README.md)"])
     allowed_top = {"scene", "fmu", "source", "block", "connection", "record", "summary"}
     _unknown_keys(data, allowed_top, "top level", problems)
     overrides = dict(overrides or {})
+    for key in list(overrides):
+        if not isinstance(key, str) or (key != "duration" and (key.count(".") != 1 or not all(key.split(".")))):
+            problems.append(f"override {key!r}: write component.parameter (e.g. contact.stiffness) or scene.duration")
+            overrides.pop(key)
 
-    head = data.get("scene", {})
+    head = _table(data.get("scene", {}), "[scene]", problems, "name, description, duration, ...")
     _unknown_keys(head, _SCENE_KEYS, "[scene]", problems)
-    if "duration" in overrides:
-        head = {**head, "duration": overrides.pop("duration")}
+    duration_where = "[scene] duration"
     for key in [k for k in overrides if k.startswith("scene.")]:
-        head = {**head, key.split(".", 1)[1]: overrides.pop(key)}
-    name = str(head.get("name", path.stem if path else "scene"))
-    duration = parse_time(head.get("duration", 1.0), "[scene] duration", problems)
-    if head.get("start_time", 0) not in (0, 0.0):
+        field_name = key.split(".", 1)[1]
+        if field_name not in _SCENE_KEYS:
+            problems.append(f"override {key!r}: [scene] has no key {field_name!r}; valid keys: "
+                            f"{', '.join(sorted(_SCENE_KEYS))}")
+        elif field_name == "duration":
+            duration_where = "scene.duration (override)"
+        head = {**head, field_name: overrides.pop(key)}
+    if "duration" in overrides:  # after scene.duration: `run --duration` wins over `--set scene.duration=`
+        head = {**head, "duration": overrides.pop("duration")}
+        duration_where = "duration (from the command line or a study)"
+    name = head.get("name", path.stem if path else "scene")
+    problem = scene_name_problem(name)
+    if problem:
+        where = "[scene] name" if "name" in head else f"[scene] name (taken from the file name {path.name!r})"
+        problems.append(f"{where}: {problem}")
+    description = head.get("description", "")
+    if not isinstance(description, str):
+        problems.append(f"[scene] description: must be a string (got {_short(description)})")
+    duration = parse_time(head.get("duration", 1.0), duration_where, problems)
+    if head.get("start_time", 0) not in (0, 0.0) or isinstance(head.get("start_time"), bool):
         problems.append("[scene] start_time: only 0 is supported; shift your sources instead")
     hosting = head.get("hosting", "out-of-process")
     if hosting not in HOSTINGS:
-        problems.append(f"[scene] hosting: {hosting!r} is not one of {', '.join(HOSTINGS)}")
+        problems.append(f"[scene] hosting: {_short(hosting)} is not one of {', '.join(HOSTINGS)}")
     realtime = head.get("realtime", False)
     if not isinstance(realtime, bool):
-        problems.append(f"[scene] realtime: must be true or false (got {realtime!r})")
-    # run-faults (issue 14): the worker reply deadline; kept to this one place.
+        problems.append(f"[scene] realtime: must be true or false (got {_short(realtime)})")
+    # How long a worker may take to answer one call; None: derived from its recent replies (worker.py).
+    # A day bounds it: a longer wait is a hang, and 10**400 would not even convert to seconds.
     worker_timeout = head.get("worker_timeout")
     if worker_timeout is not None and (isinstance(worker_timeout, bool) or not isinstance(worker_timeout, (int, float))
-                                       or not 0 < worker_timeout < float("inf")):
-        problems.append(f"[scene] worker_timeout: seconds a worker may take to answer, a number > 0 "
-                        f"(got {worker_timeout!r}); leave it out for the automatic max(10 s, 100 x slowest reply)")
+                                       or not 0 < worker_timeout <= 86400):
+        problems.append(f"[scene] worker_timeout: seconds a worker may take to answer, a number in (0, 86400] "
+                        f"(got {_short(worker_timeout)}); leave it out for the automatic max(10 s, 100 x slowest reply)")
         worker_timeout = None
 
     components: dict[str, ComponentSpec] = {}
-    declared = {name for section in ("fmu", "source", "block") for name in data.get(section, {})
-                if isinstance(data.get(section), dict)}
-    _load_fmus(data.get("fmu", {}), base_dir, components, overrides, problems)
-    _load_blocks(data.get("source", {}), "source", base_dir, components, overrides, problems)
-    _load_blocks(data.get("block", {}), "block", base_dir, components, overrides, problems)
+    sections = {section: _table(data.get(section, {}), section, problems, f"one [{section}.<name>] table each")
+                for section in ("fmu", "source", "block")}
+    declared = {name for table in sections.values() for name in table}
+    for section, table in sections.items():
+        for component in table:
+            problem = _component_name_problem(section, component)
+            if problem:
+                problems.append(problem)
+    _load_fmus(sections["fmu"], base_dir, components, overrides, problems)
+    _load_blocks(sections["source"], "source", base_dir, components, overrides, problems)
+    _load_blocks(sections["block"], "block", base_dir, components, overrides, problems)
     for key in overrides:
         problems.append(f"override {key!r}: no such component parameter in the scene")
-    if not components:
+    if not components and not declared:
         problems.append("the scene has no [fmu.<name>] or [block.<name>]: nothing to simulate")
 
     if duration is not None:
-        problem = duration_problem(components.values(), duration)
+        problem = duration_problem(components.values(), duration) or run_size_problem(components.values(), duration)
         if problem:
-            problems.append(f"[scene] duration: {problem}")
+            problems.append(f"{duration_where}: {problem}")
     connections = _load_connections(data.get("connection", []), components, problems, declared)
     _check_algebraic_loops(connections, components, problems)
-    record, surfaces, plots = _load_record(data.get("record", {}), components, problems)
-    summary = data.get("summary", {})
+    record, surfaces, plots = _load_record(_table(data.get("record", {}), "[record]", problems,
+                                                  "<component> = [ports], surfaces, plots"), components, problems,
+                                           declared)
+    summary = _table(data.get("summary", {}), "[summary]", problems, "peaks, energy, warnings")
     _unknown_keys(summary, _SUMMARY_KEYS, "[summary]", problems)
     for key in ("peaks", "energy", "warnings"):
-        for i, item in enumerate(summary.get(key, [])):
+        items = _list(summary.get(key, []), f"[summary] {key}", problems, 'of "component.port"')
+        for i, item in enumerate(items):
             ref = _parse_endpoint(item, f"[summary] {key}[{i}]", problems)
             if ref and (ref[0] not in components or ref[1] not in components[ref[0]].ports):
-                problems.append(f"[summary] {key}[{i}]: {item!r} is not a port of the scene")
+                if ref[0] not in declared or ref[0] in components:  # else: that component's problem is reported
+                    problems.append(f"[summary] {key}[{i}]: {item!r} is not a port of the scene")
             elif ref and components[ref[0]].ports[ref[1]].type not in NUMERIC_TYPES:
                 problems.append(f"[summary] {key}[{i}]: {item!r} is a {components[ref[0]].ports[ref[1]].type} variable; "
                                 "the summary takes numbers, Booleans and enumerations")
     if problems:
         raise SceneError(path, problems)
-    return Scene(path=path, name=name, description=str(head.get("description", "")), duration=duration,
+    return Scene(path=path, name=name, description=description, duration=duration,
                  components=components, connections=connections, record=record, surfaces=surfaces, plots=plots,
                  summary=summary, hosting=hosting, realtime=realtime,
                  worker_timeout=None if worker_timeout is None else float(worker_timeout))
@@ -358,17 +530,30 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
         _unknown_keys(table, _FMU_KEYS, where, problems)
         if f"{name}.step" in overrides:  # "tissue.step" overrides the step, not a parameter
             table = {**table, "step": overrides.pop(f"{name}.step")}
-        parameters = _apply_overrides(name, table.get("parameters", {}), overrides)
+        parameters = _apply_overrides(name, _table(table.get("parameters", {}), f"{where} parameters", problems,
+                                                   f"[fmu.{name}.parameters] with name = value lines"), overrides)
         if "path" not in table:
             problems.append(f"{where}: no path; add path = \"Tissue.fmu\" (looked up next to the scene, then in fmus/)")
             continue
-        fmu_path, tried = resolve_fmu_path(table["path"], base_dir)
+        if not isinstance(table["path"], str) or not table["path"].strip():
+            problems.append(f"{where} path: must be the file name of an .fmu in quotes, e.g. path = \"Tissue.fmu\" "
+                            f"(got {_short(table['path'])})")
+            continue
+        try:
+            fmu_path, tried = resolve_fmu_path(table["path"], base_dir)
+        except (ValueError, OSError) as exc:  # a NUL byte, a name too long for the file system
+            problems.append(f"{where} path: {_short(table['path'])} is not a usable file name ({exc})")
+            continue
         if fmu_path is None:
             problems.append(f"{where} path: {table['path']!r} not found (looked in {', '.join(str(t.parent) for t in tried)}); "
                             "build the FMUs with `python -m orchestration build`")
             continue
+        # Array sizes follow the structural parameters: only plausible sizes go into the description
+        # (a wrong one is reported by _check_parameters, and must not make read_fmu build huge shapes).
+        sizes = {k: v for k, v in parameters.items()
+                 if isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_PORT_VALUES}
         try:
-            description = read_fmu(fmu_path, {k: v for k, v in parameters.items() if isinstance(v, int)})
+            description = read_fmu(fmu_path, sizes)
         except (OSError, ValueError) as exc:
             problems.append(f"{where} path: {exc}")
             continue
@@ -380,12 +565,21 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             problems.append(f"{where}: no step and the FMU declares no default step; add step = 0.001")
             continue
         step = parse_time(step_value, f"{where} step", problems)
+        if step is not None and step_problem(step):
+            problems.append(f"{where} step: {step_problem(step)}")
+            step = None
         ports = description.ports
+        for port in ports.values():
+            if port.size > MAX_PORT_VALUES:
+                problems.append(f"{where}: {port.name} would hold {port.size} values "
+                                f"({'x'.join(map(str, port.shape))}), more than {MAX_PORT_VALUES} (a mesh far larger "
+                                "than any this project runs): check the structural parameters that size it")
         if step is not None and "internal_step" in ports:
             # the project's FMUs: the scene's step is the model's own rate
             given = parameters.get("internal_step")
-            if given is not None and abs(float(given) - float(step)) > 1e-12 * float(step):
-                problems.append(f"{where} parameters.internal_step = {given} differs from step = {step_value}; "
+            number = isinstance(given, (int, float)) and not isinstance(given, bool) and _finite(given)
+            if given is not None and (not number or abs(float(given) - float(step)) > 1e-12 * float(step)):
+                problems.append(f"{where} parameters.internal_step = {_short(given)} differs from step = {step_value}; "
                                 "remove the parameter (the master sets it from step)")
             parameters["internal_step"] = float(step)
         elif step is not None and fixed is not None and step % fixed != 0:
@@ -415,11 +609,61 @@ def _check_parameters(where: str, parameters: dict, ports: dict[str, PortInfo], 
             problems.append(f"{where} parameters.{key}: is a {port.causality}, not settable")
             continue
         if not _type_matches(port, value):
-            problems.append(f"{where} parameters.{key}: expects {_expected(port)} (got {value!r})")
+            problems.append(f"{where} parameters.{key}: expects {_expected(port)} (got {_short(value)})")
+            continue
+        problem = _value_problem(port, value)
+        if problem:
+            problems.append(f"{where} parameters.{key}: {problem}")
             continue
         if port.is_array and _size_of(value) not in (port.size, 1):
             problems.append(f"{where} parameters.{key}: expects {port.size} values ({'x'.join(map(str, port.shape))}), "
                             f"got {_size_of(value)}")
+
+
+def _flat(value) -> list:
+    """The scalars of a value or of a nested list of values."""
+    if isinstance(value, list):
+        return [v for item in value for v in _flat(item)]
+    return [value]
+
+
+def _finite(value) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond any float (TOML integers have no size limit)
+        return False
+
+
+def _value_problem(port: PortInfo, value) -> str | None:
+    """Why a value of the right type cannot be set: not finite, out of the type's range, or an array
+    size beyond MAX_PORT_VALUES (a structural parameter); None if it can."""
+    values = _flat(value)
+    numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    below = [v for v in numbers if port.minimum is not None and v < port.minimum]
+    above = [v for v in numbers if port.maximum is not None and v > port.maximum]
+    if below or above:  # the FMU's own range (min/max in its modelDescription.xml)
+        low = "-inf" if port.minimum is None else f"{port.minimum:g}"
+        high = "inf" if port.maximum is None else f"{port.maximum:g}"
+        return f"{(below or above)[0]!r} is outside the range the FMU declares for it, {low} to {high}"
+    if port.type.startswith("Float"):
+        bad = [v for v in values if not _finite(v)]
+        if bad:
+            return f"{_short(bad[0])} is not a finite number; the FMU computes with it (give a finite value)"
+    elif port.type in INTEGER_RANGES and port.type != "Enumeration":
+        low, high = INTEGER_RANGES[port.type]
+        bad = [v for v in values if isinstance(v, int) and not low <= v <= high]
+        if bad:
+            return f"{bad[0]} is outside the range of {port.type} ({low}..{high})"
+        if port.causality == "structuralParameter" and any(isinstance(v, int) and v > MAX_PORT_VALUES for v in values):
+            return (f"{max(values)} is more than {MAX_PORT_VALUES}: a structural parameter sizes arrays, and one this "
+                    "large is far beyond any mesh this project runs (the AAA wall has 2688 surface nodes)")
+    elif port.type == "Enumeration":
+        numbers = [v for v in values if isinstance(v, int)]
+        known = {item for _, item in port.items}
+        bad = [v for v in numbers if known and v not in known]
+        if bad:
+            return f"{bad[0]} is not a value of {_type_of(port)}: {_expected(port)}"
+    return None
 
 
 def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, overrides: dict,
@@ -438,6 +682,9 @@ def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, o
         step = None
         if "step" in table:  # exact here; the block gets the float the master will step it with
             step = parse_time(table["step"], f"{where} step", problems)
+            if step is not None and step_problem(step):
+                problems.append(f"{where} step: {step_problem(step)}")
+                step = None
             table = {**table, "step": float(step) if step is not None else 0.001}
         try:
             block = make_block(name, table, base_dir)
@@ -452,6 +699,8 @@ def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, o
             problems.append(f"{where}: kind {table.get('kind')!r} is a continuous source; declare it as [source.{name}]")
             continue
         if not continuous and step is None:
+            if "step" in table:  # given and refused above
+                continue
             step = parse_time(getattr(block, "step", None), f"{where} step", problems)
         components[name] = ComponentSpec(name=name, kind=str(table.get("kind")), step=step, table=table,
                                          ports=dict(block.ports), base_dir=base_dir)
@@ -587,6 +836,20 @@ def duration_problem(components, duration: Fraction) -> str | None:
             + " or ".join(f"{float(d):.6g}" for d in options))
 
 
+def run_size_problem(components, duration: Fraction) -> str | None:
+    """Why a run of ``duration`` is too long to be meant (more than MAX_RUN_STEPS steps), or None."""
+    stepped = [c for c in components if c.step is not None]
+    total = sum(duration / c.step for c in stepped)
+    if total <= MAX_RUN_STEPS:
+        return None
+    fastest = min(stepped, key=lambda c: c.step)
+    longest = MAX_RUN_STEPS / sum(1 / c.step for c in stepped)
+    return (f"{float(duration):g} s means {float(total):.3g} component steps ({fastest.name} alone takes "
+            f"{float(duration / fastest.step):.3g}), more than the limit of {MAX_RUN_STEPS:.0e} steps per run "
+            f"(about 50 minutes of computing on a 2-core machine); give the duration in seconds, at most "
+            f"{float(longest):.6g} s with these steps, or split a long session into several runs")
+
+
 def _check_algebraic_loops(connections: list[ConnectionSpec], components: dict, problems: list[str]) -> None:
     """A cycle of Gauss-Seidel connections has no order to step in: one of them must be Jacobi."""
     graph: dict[str, set[str]] = {}
@@ -621,49 +884,46 @@ def _check_algebraic_loops(connections: list[ConnectionSpec], components: dict, 
                 return
 
 
-def _load_record(table: dict, components: dict, problems: list[str]):
+def _load_record(table: dict, components: dict, problems: list[str], declared=frozenset()):
+    """What to record; a component that is declared but could not be loaded (its problem is
+    reported already) is skipped rather than reported again as unknown."""
     record: dict[str, list[str]] = {}
     surfaces: list[SurfaceSpec] = []
     plots: list[dict] = []
     for key, value in table.items():
         if key == "surfaces":
-            for i, item in enumerate(value):
-                where = f"[record] surfaces[{i}]"
-                if not isinstance(item, dict):
-                    problems.append(f"{where}: must be a table {{ component, positions, triangles }}")
+            items = _list(value, "[record] surfaces", problems, "write each as a [[record.surfaces]] table")
+            for i, item in enumerate(items):
+                surface = _load_surface(f"[record] surfaces[{i}]", item, components, problems, declared)
+                if surface is None:
                     continue
-                _unknown_keys(item, _SURFACE_KEYS, where, problems)
-                comp = components.get(item.get("component"))
-                if comp is None:
-                    problems.append(f"{where}: unknown component {item.get('component')!r}")
-                    continue
-                for role in ("positions", "triangles"):
-                    if item.get(role) not in comp.ports:
-                        problems.append(f"{where} {role}: {comp.name} has no port {item.get(role)!r}")
-                for extra in item.get("point_data", []):
-                    if extra not in comp.ports:
-                        problems.append(f"{where} point_data: {comp.name} has no port {extra!r}")
-                every = item.get("every", 1)
-                if not isinstance(every, int) or every < 1:
-                    problems.append(f"{where} every: must be a positive integer (got {every!r})")
-                    every = 1
-                surfaces.append(SurfaceSpec(comp.name, item.get("positions"), item.get("triangles"), every,
-                                            tuple(item.get("point_data", [])), str(item.get("name", comp.name + "_surface"))))
+                # <name>.pvd and the folder <name>/ beside <component>.csv and units.json
+                taken = {s.name for s in surfaces} | {k for k in table if k not in ("surfaces", "plots")} | {"units"}
+                if surface.name in taken:
+                    problems.append(f"[record] surfaces[{i}] name: {surface.name!r} is already the name of another "
+                                    "recorded file (a surface, a component's CSV or units); give another name")
+                else:
+                    surfaces.append(surface)
         elif key == "plots":
-            if not isinstance(value, list):
-                problems.append("[record] plots: must be a list of figures")
-            else:
-                plots = value
+            items = _list(value, "[record] plots", problems, "write each figure as a [[record.plots]] table")
+            plots = [item for i, item in enumerate(items) if _plot_ok(i, item, components, problems, declared)]
         else:
             comp = components.get(key)
             if comp is None:
-                problems.append(f"[record] {key}: unknown component; components: {', '.join(components)}")
+                if key not in declared:
+                    problems.append(f"[record] {key}: unknown component; components: {', '.join(components)}")
                 continue
             if not isinstance(value, list):
-                problems.append(f"[record] {key}: must be a list of port names")
+                problems.append(f"[record] {key}: must be a list of port names (got {_short(value)})")
                 continue
-            for port in value:
+            ports = _strings(value, f"[record] {key}", problems, "a port name")
+            seen: set[str] = set()
+            for port in ports:
                 info = comp.ports.get(port)
+                if port in seen:
+                    # The CSV would have two columns of one name and the run would refuse it.
+                    problems.append(f"[record] {key}: {port!r} is listed twice; list each port once")
+                seen.add(port)
                 if info is None:
                     problems.append(f"[record] {key}: no port {port!r}")
                 elif info.type not in NUMERIC_TYPES:
@@ -672,8 +932,107 @@ def _load_record(table: dict, components: dict, problems: list[str]):
                 elif info.size > 64:
                     problems.append(f"[record] {key}.{port}: {info.size} values is too many for a CSV column set; "
                                     "record surfaces with [[record.surfaces]]")
-            if comp.is_continuous:
+            if comp.is_continuous and not comp.is_fmu:  # an FMU without a step has its own problem
                 problems.append(f"[record] {key}: a continuous source has no steps to record at; record the input it drives")
                 continue
-            record[key] = list(value)
+            record[key] = list(dict.fromkeys(ports))
     return record, surfaces, plots
+
+
+def _load_surface(where: str, item, components: dict, problems: list[str], declared) -> SurfaceSpec | None:
+    if not isinstance(item, dict):
+        problems.append(f"{where}: must be a table {{ component, positions, triangles }}")
+        return None
+    _unknown_keys(item, _SURFACE_KEYS, where, problems)
+    component = item.get("component")
+    comp = components.get(component) if isinstance(component, str) else None
+    if comp is None:
+        if not isinstance(component, str) or component not in declared:
+            problems.append(f"{where}: unknown component {_short(component)}; components: {', '.join(components)}")
+        return None
+    ok = True
+    for role in ("positions", "triangles"):
+        if not isinstance(item.get(role), str) or item.get(role) not in comp.ports:
+            problems.append(f"{where} {role}: {comp.name} has no port {_short(item.get(role))}")
+            ok = False
+            continue
+        # what the recording needs (recording.write_surface): flat (n, 3) numbers, triangles in integers
+        port = comp.ports[item[role]]
+        integer = port.type in INTEGER_RANGES and port.type != "Enumeration"
+        if port.type not in NUMERIC_TYPES or port.type == "Boolean" or port.size % 3 or port.size == 0 or (
+                role == "triangles" and not integer):
+            kind = "integer node ids, 3 per triangle" if role == "triangles" else "numbers, 3 per node (x, y, z)"
+            problems.append(f"{where} {role}: {comp.name}.{port.name} is {port.describe()}; {role} are {kind}")
+            ok = False
+    nodes = comp.ports[item["positions"]].size // 3 if ok else None
+    point_data = _strings(_list(item.get("point_data", []), f"{where} point_data", problems, "of port names"),
+                          f"{where} point_data", problems, "a port name")
+    for extra in point_data:
+        if extra not in comp.ports:
+            problems.append(f"{where} point_data: {comp.name} has no port {extra!r}")
+            ok = False
+        elif nodes is not None and comp.ports[extra].size not in (nodes, 3 * nodes):
+            problems.append(f"{where} point_data: {comp.name}.{extra} holds {comp.ports[extra].size} values; point "
+                            f"data has one or three per node ({nodes} or {3 * nodes})")
+            ok = False
+    if comp.is_continuous and not comp.is_fmu:
+        problems.append(f"{where}: {comp.name} is a continuous source, it has no steps to record frames at; "
+                        "record the surface of a stepped component")
+        ok = False
+    every = item.get("every", 1)
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+        problems.append(f"{where} every: must be a positive integer, a frame every so many steps (got {_short(every)})")
+        ok = False
+    name = item.get("name", comp.name + "_surface")
+    if not isinstance(name, str) or not _FILE_NAME.fullmatch(name):
+        problems.append(f"{where} name: {_short(name)} is not a plain name: it names <name>.pvd in the result "
+                        "folder, so it is letters, digits, '_', '-' or '.', not starting with '.' (no '/')")
+        ok = False
+    if not ok:
+        return None
+    return SurfaceSpec(comp.name, item["positions"], item["triangles"], every, tuple(point_data), name)
+
+
+def _plot_ok(index: int, figure, components: dict, problems: list[str], declared) -> bool:
+    """Check one [[record.plots]] figure as plots.plot_signals will draw it at the end of the run."""
+    where = f"[record] plots[{index}]"
+    if not isinstance(figure, dict):
+        problems.append(f"{where}: must be a table {{ file, title, panels }}")
+        return False
+    count = len(problems)
+    _unknown_keys(figure, _PLOT_KEYS, where, problems)
+    file = figure.get("file")
+    if not isinstance(file, str) or not _FILE_NAME.fullmatch(file) or not file.lower().endswith(".png"):
+        problems.append(f"{where} file: {_short(file)} is not a plain .png file name in the result folder "
+                        "(e.g. \"forces.png\"; no '/')")
+    if not isinstance(figure.get("title", ""), str):
+        problems.append(f"{where} title: must be a string")
+    panels = figure.get("panels")
+    if not isinstance(panels, list) or not panels:
+        problems.append(f"{where} panels: must be a non-empty list of {{ ylabel, series = [...] }}")
+        panels = []
+    for p, panel in enumerate(panels):
+        at = f"{where} panels[{p}]"
+        if not isinstance(panel, dict):
+            problems.append(f"{at}: must be a table {{ ylabel, series = [...] }}")
+            continue
+        _unknown_keys(panel, _PANEL_KEYS, at, problems)
+        if not isinstance(panel.get("ylabel", ""), str):
+            problems.append(f"{at} ylabel: must be a string")
+        series_list = _list(panel.get("series", []), f"{at} series", problems, "of { stream, column, label }")
+        for k, series in enumerate(series_list):
+            at_series = f"{at} series[{k}]"
+            if not isinstance(series, dict):
+                problems.append(f"{at_series}: must be a table {{ stream, column, label }}")
+                continue
+            _unknown_keys(series, _SERIES_KEYS, at_series, problems)
+            stream, column = series.get("stream"), series.get("column")
+            if not isinstance(stream, str) or (stream not in components and stream not in declared):
+                problems.append(f"{at_series} stream: {_short(stream)} is not a component of the scene")
+            if not isinstance(column, str) or not column:
+                problems.append(f"{at_series} column: must be a port name (got {_short(column)})")
+            if not isinstance(series.get("label", ""), str):
+                problems.append(f"{at_series} label: must be a string")
+            if not isinstance(series.get("norm", False), bool):
+                problems.append(f"{at_series} norm: must be true or false")
+    return len(problems) == count

@@ -23,6 +23,8 @@ def run_study(name: str, *, out: Path | str | None = None, quick: bool = False, 
     """
     if name not in STUDIES:
         raise ValueError(f"no study {name!r}; studies: {', '.join(STUDIES)}")
+    if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
+        raise ValueError(f"workers = {workers!r}: give a whole number of processes >= 1, or None for the CPU count")
     module = importlib.import_module(f"{__name__}.{name}")
     out = Path(out) if out else Path("results") / f"study_{name}"
     finished = out / "points.jsonl"

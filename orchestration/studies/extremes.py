@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..blocks import PLANT_LIMITS
 from .common import run_point, write_table
 
 logger = logging.getLogger(__name__)
@@ -90,7 +91,7 @@ def rows(quick: bool) -> list[dict]:
                "setting": f"virtual wall K = {k:g} N/m, passivity controller {'on' if pc else 'off'}"}
               for k, pc in ((800, False), (2000, False), (20000, False), (800, True), (5000, True), (20000, True))]
     nan = [{"row": "nan_source_runtime", "kind": "nan_runtime",
-            "setting": "device plant mass 1e-300 kg pushed with 1e308 N: position overflows to Inf/NaN into Contact"},
+            "setting": "device plant mass 1e-10 kg pushed with 1e308 N: position overflows to Inf/NaN into Contact"},
            {"row": "nan_source_scene", "kind": "nan_scene",
             "setting": "piecewise source with a NaN knot value"}]
     points = tissue + plane + haptic + nan
@@ -444,7 +445,9 @@ def _run_haptic(point: dict) -> dict:
 # -- NaN from a misconfigured source ---------------------------------------------------------------
 
 def _run_nan_runtime(point: dict) -> dict:
-    overrides = {"device.mass": 1e-300, "operator.times": [0.0, 0.05],
+    # the lightest mass the plant accepts (blocks.PLANT_LIMITS; 1e-300 is refused at load): 1e308 N
+    # over it still overflows the position to Inf/NaN, which the run must name
+    overrides = {"device.mass": PLANT_LIMITS["mass"][0], "operator.times": [0.0, 0.05],
                  "operator.outputs": {"force": [[0.0, 0.0, 0.0], [1e308, 0.0, 0.0]]}}
     with np.errstate(all="ignore"):
         summary, sim = run_point("virtual_wall", overrides, duration=0.1)
