@@ -1,4 +1,5 @@
 """Command line: ``python -m orchestration build | validate SCENE | run [SCENE] | study NAME``."""
+import os
 import signal
 import sys
 
@@ -11,7 +12,13 @@ stopping.install()
 
 from .cli import main  # noqa: E402 (after the handlers, on purpose)
 
-code = main()
+try:
+    code = main()
+except BrokenPipeError:
+    # The reader of the output went away (`validate SCENE | head`): nothing of ours failed. Point
+    # stdout at /dev/null so that the interpreter's final flush does not raise again.
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    code = 1
 if stopping.active() is not None:
     # The run is over and its exit code decided. Python restores the default handlers while it
     # shuts down, so a Ctrl-C arriving now would end the process "killed by SIGINT" instead of

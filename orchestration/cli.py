@@ -19,7 +19,6 @@ DEFAULT_SCENE = "aaa_endovascular"
 #: 2 nothing was run: a usage or scene error, with "error: ..." on stderr; 130 / 143 a run stopped
 #: by Ctrl-C / SIGTERM (see RUN_EPILOG).
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
-EXIT_SIGINT, EXIT_SIGTERM = 130, 143  # 128 + the signal, as a shell reports it (orchestration.stopping)
 
 RUN_EPILOG = """\
 exit codes:

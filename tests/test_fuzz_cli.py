@@ -280,3 +280,13 @@ def test_a_run_that_fails_exits_1_naming_the_fmu_and_keeps_its_results(fmus_in_r
     assert "Traceback" not in result.stderr
     assert "error: contact: fmi3ExitInitializationMode" in result.stderr and "tool must be one of" in result.stderr
     assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+
+
+def test_a_reader_that_goes_away_ends_validate_without_a_traceback():
+    """`validate SCENE | head -1`: the pipe closes before the output is written."""
+    proc = subprocess.Popen([sys.executable, "-m", "orchestration", "validate", "aaa_endovascular"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 1
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
