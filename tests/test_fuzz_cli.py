@@ -279,7 +279,11 @@ def test_a_run_that_fails_exits_1_naming_the_fmu_and_keeps_its_results(fmus_in_r
     assert result.returncode == 1, result.stderr
     assert "Traceback" not in result.stderr
     assert "error: contact: fmi3ExitInitializationMode" in result.stderr and "tool must be one of" in result.stderr
-    assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+    # a failed run's results go beside OUT (OUT keeps the last complete run; here there is none)
+    failed = tmp_path / "failed.failed"
+    assert f"results up to the failure are in {failed}" in result.stderr
+    assert json.loads((failed / "summary.json").read_text())["status"] == "failed"
+    assert not out.exists()
 
 
 def test_a_reader_that_goes_away_ends_validate_without_a_traceback():
