@@ -99,7 +99,7 @@ class Simulation:
             return InProcessFmu(spec.name, spec.description)
         from .worker import WorkerFmu
 
-        return WorkerFmu(spec.name, spec.description, reply_timeout=getattr(self.scene, "worker_timeout", None))
+        return WorkerFmu(spec.name, spec.description, reply_timeout=self.scene.worker_timeout)
 
     # -- the run -----------------------------------------------------------------------------------
     def run(self) -> dict:

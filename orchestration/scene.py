@@ -639,12 +639,6 @@ def _value_problem(port: PortInfo, value) -> str | None:
     size beyond MAX_PORT_VALUES (a structural parameter); None if it can."""
     values = _flat(value)
     numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
-    below = [v for v in numbers if port.minimum is not None and v < port.minimum]
-    above = [v for v in numbers if port.maximum is not None and v > port.maximum]
-    if below or above:  # the FMU's own range (min/max in its modelDescription.xml)
-        low = "-inf" if port.minimum is None else f"{port.minimum:g}"
-        high = "inf" if port.maximum is None else f"{port.maximum:g}"
-        return f"{(below or above)[0]!r} is outside the range the FMU declares for it, {low} to {high}"
     if port.type.startswith("Float"):
         bad = [v for v in values if not _finite(v)]
         if bad:
@@ -663,6 +657,14 @@ def _value_problem(port: PortInfo, value) -> str | None:
         bad = [v for v in numbers if known and v not in known]
         if bad:
             return f"{bad[0]} is not a value of {_type_of(port)}: {_expected(port)}"
+    # Last: the FMU's own plausible range (min/max in its modelDescription.xml), once the value is
+    # a finite number of its type at all.
+    below = [v for v in numbers if port.minimum is not None and v < port.minimum]
+    above = [v for v in numbers if port.maximum is not None and v > port.maximum]
+    if below or above:
+        low = "-inf" if port.minimum is None else f"{port.minimum:g}"
+        high = "inf" if port.maximum is None else f"{port.maximum:g}"
+        return f"{_short((below or above)[0])} is outside the range the FMU declares for it, {low} to {high}"
     return None
 
 
