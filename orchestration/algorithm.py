@@ -183,6 +183,18 @@ class MultirateAlgorithm:
         """The tick every component has reached."""
         return min((c.time for c in self.ordered), default=0)
 
+    def request_stop(self, reason: str, level: int) -> None:
+        """A stop request (from a signal handler: flags only). ``level`` 1 stops at the next check;
+        2 (a second request) also tells the hosts that wait for a worker to abandon the call."""
+        self.stop_reason = reason
+        self.stop_level = level
+        for comp in self.ordered:
+            self._pass_stop_level(comp)
+
+    def _pass_stop_level(self, comp: Component) -> None:
+        if comp.host is not None and hasattr(comp.host, "stop_level"):  # hosts that wait (workers)
+            comp.host.stop_level = self.stop_level
+
     def check_stop(self) -> None:
         """Raise RunInterrupted if a stop was requested (between calls, never inside one)."""
         if self.stop_reason:
@@ -243,8 +255,7 @@ class MultirateAlgorithm:
         for comp in self.ordered:
             comp.host = self.make_host(comp.spec)
             comp.asynchronous = comp.host.wait_handle() is not None
-            if hasattr(comp.host, "stop_level"):
-                comp.host.stop_level = self.stop_level
+            self._pass_stop_level(comp)
         for comp in self.ordered:
             self.check_stop()
             call(comp, "instantiate", 0.0, comp.host.instantiate)

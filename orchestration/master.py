@@ -119,12 +119,7 @@ class Simulation:
         self.algorithm = algorithm
 
         def on_stop(request):
-            # A signal handler: flags only. The hosts see the level while they wait for a worker.
-            algorithm.stop_reason = request.reason
-            for comp in algorithm.ordered:
-                if comp.host is not None and hasattr(comp.host, "stop_level"):
-                    comp.host.stop_level = min(request.count, 2)
-            algorithm.stop_level = min(request.count, 2)
+            algorithm.request_stop(request.reason, min(request.count, 2))
 
         status, error = "completed", None
         t_setup = time.perf_counter()

@@ -48,6 +48,20 @@ def contact_fmu(fmu_dir) -> Path:
     return build_fmu("Contact", fmu_dir)
 
 
+@pytest.fixture(scope="session")
+def fmus(tissue_fmu, contact_fmu, catheter_fmu) -> dict[str, Path]:
+    """The three project FMUs: name -> path of the .fmu."""
+    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
+
+
+@pytest.fixture(scope="session")
+def c_host(tmp_path_factory) -> Path:
+    """The non-Python importer tests/c_host/fmu_host.c, compiled once with the system C compiler."""
+    from fuzz_hosts import compile_c_host
+
+    return compile_c_host(tmp_path_factory.mktemp("c_host"))
+
+
 # -- synthetic FMUs for the orchestrator's host tests (tests/synthetic/synthetic_fmu) ------------
 from orchestration.build import FmuSpec, build_fmu_from_spec  # noqa: E402
 

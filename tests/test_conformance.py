@@ -30,7 +30,7 @@ HOSTS = {"in_process": InProcessFmu, "worker": WorkerFmu}
 
 
 @pytest.fixture(scope="module")
-def fmus(tmp_path_factory) -> dict[str, Path]:
+def conformance_fmus(tmp_path_factory) -> dict[str, Path]:
     return build_all(tmp_path_factory.mktemp("conformance_fmus"))
 
 
@@ -50,8 +50,8 @@ def _extracted(fmu: Path, tmp_path: Path) -> Path:
     return Path(extract(str(fmu), str(tmp_path / "unzipped")))
 
 
-def test_binding_gets_and_sets_every_type_and_reports_errors_with_the_logged_reason(fmus, tmp_path):
-    unzipped = _extracted(fmus["Types"], tmp_path)
+def test_binding_gets_and_sets_every_type_and_reports_errors_with_the_logged_reason(conformance_fmus, tmp_path):
+    unzipped = _extracted(conformance_fmus["Types"], tmp_path)
     library = Fmi3Library.from_extracted(unzipped, "Types")
     try:
         assert library.version() == "3.0"
@@ -105,8 +105,8 @@ TYPES_OBSERVED = ["count", "small", "big", "flag", "mode_out", "speed", "distanc
                   "label_length", "blob_sum", "blob_size"]
 
 
-def test_every_variable_type_through_the_hosts(kind, fmus):
-    host = hosted(kind, "types", fmus["Types"])
+def test_every_variable_type_through_the_hosts(kind, conformance_fmus):
+    host = hosted(kind, "types", conformance_fmus["Types"])
     try:
         host.instantiate()
         host.set_values({"label": "conformance", "blob": "00ff10", "big_offset": 2**40, "mode": "Fast"})
@@ -144,8 +144,8 @@ def test_every_variable_type_through_the_hosts(kind, fmus):
         host.terminate()
 
 
-def test_values_a_float64_cannot_carry_exactly_are_refused(kind, fmus):
-    host = hosted(kind, "types", fmus["Types"])
+def test_values_a_float64_cannot_carry_exactly_are_refused(kind, conformance_fmus):
+    host = hosted(kind, "types", conformance_fmus["Types"])
     try:
         host.instantiate()
         host.set_values({"big_offset": 2**53 - 1})
@@ -161,8 +161,8 @@ def test_values_a_float64_cannot_carry_exactly_are_refused(kind, fmus):
         host.terminate()
 
 
-def test_parameters_of_the_wrong_type_are_refused_with_the_port_named(fmus):
-    host = hosted("in_process", "types", fmus["Types"])
+def test_parameters_of_the_wrong_type_are_refused_with_the_port_named(conformance_fmus):
+    host = hosted("in_process", "types", conformance_fmus["Types"])
     try:
         host.instantiate()
         for values, words in [({"blob": "xyz"}, "Binary parameter.*hexadecimal"),
@@ -178,8 +178,8 @@ def test_parameters_of_the_wrong_type_are_refused_with_the_port_named(fmus):
 
 
 # -- Configuration Mode ----------------------------------------------------------------------------
-def test_structural_parameters_are_set_in_configuration_mode(kind, fmus):
-    host = hosted(kind, "structural", fmus["Structural"], {"n": 5})
+def test_structural_parameters_are_set_in_configuration_mode(kind, conformance_fmus):
+    host = hosted(kind, "structural", conformance_fmus["Structural"], {"n": 5})
     try:
         assert host.ports["v"].size == 5
         host.instantiate()
@@ -197,9 +197,9 @@ def test_structural_parameters_are_set_in_configuration_mode(kind, fmus):
         host.terminate()
 
 
-def test_the_structural_fmu_really_refuses_n_outside_configuration_mode(fmus, tmp_path):
+def test_the_structural_fmu_really_refuses_n_outside_configuration_mode(conformance_fmus, tmp_path):
     """The check above proves something: set directly, the FMU returns fmi3Error and says why."""
-    unzipped = _extracted(fmus["Structural"], tmp_path)
+    unzipped = _extracted(conformance_fmus["Structural"], tmp_path)
     library = Fmi3Library.from_extracted(unzipped, "Structural")
     instance = Fmi3Instance(library, "structural", "{conformance-structural-1}", resource_path(unzipped))
     try:
@@ -220,8 +220,8 @@ def fixed_step_x(internal_steps: int, a: float = 2.0, dt: float = 0.002) -> floa
     return x
 
 
-def test_fixed_internal_step_fmu_through_the_hosts(kind, fmus):
-    host = hosted(kind, "fixed", fmus["FixedStep"])
+def test_fixed_internal_step_fmu_through_the_hosts(kind, conformance_fmus):
+    host = hosted(kind, "fixed", conformance_fmus["FixedStep"])
     try:
         host.instantiate()
         host.enter_initialization(0.0)
@@ -239,8 +239,8 @@ def test_fixed_internal_step_fmu_through_the_hosts(kind, fmus):
         host.terminate()
 
 
-def test_a_discarded_step_without_termination_is_an_error_that_says_why(kind, fmus):
-    host = hosted(kind, "ramp", fmus["Ramp"])
+def test_a_discarded_step_without_termination_is_an_error_that_says_why(kind, conformance_fmus):
+    host = hosted(kind, "ramp", conformance_fmus["Ramp"])
     try:
         host.instantiate()
         host.set_values({"max_step": 0.01})
@@ -261,20 +261,20 @@ def test_a_discarded_step_without_termination_is_an_error_that_says_why(kind, fm
     assert not [text for status, text in host.messages if status >= FMI_ERROR]
 
 
-def test_the_conformance_fmus_are_valid_for_fmpy(fmus):
+def test_the_conformance_fmus_are_valid_for_fmpy(conformance_fmus):
     from fmpy import read_model_description
     from fmpy.validation import validate_fmu
 
-    for name, path in fmus.items():
+    for name, path in conformance_fmus.items():
         assert validate_fmu(str(path)) == [], name
         read_model_description(str(path), validate_model_structure=True)
 
 
 # -- terminateSimulation ---------------------------------------------------------------------------
 @pytest.mark.parametrize("discard", [False, True])
-def test_terminate_simulation_is_reported_by_the_hosts(kind, fmus, discard, caplog):
+def test_terminate_simulation_is_reported_by_the_hosts(kind, conformance_fmus, discard, caplog):
     stop_at = 0.045 if discard else 0.05
-    host = hosted(kind, "term", fmus["Terminator"])
+    host = hosted(kind, "term", conformance_fmus["Terminator"])
     try:
         host.instantiate()
         host.set_values({"stop_at": stop_at, "discard": discard})
@@ -301,8 +301,8 @@ def test_terminate_simulation_is_reported_by_the_hosts(kind, fmus, discard, capl
         host.terminate()
 
 
-def test_fmi3_terminate_follows_a_requested_termination(fmus):
-    host = hosted("in_process", "term", fmus["Terminator"])
+def test_fmi3_terminate_follows_a_requested_termination(conformance_fmus):
+    host = hosted("in_process", "term", conformance_fmus["Terminator"])
     host.instantiate()
     host.enter_initialization(0.0)
     host.configure([], ["y"])
@@ -318,18 +318,18 @@ def test_fmi3_terminate_follows_a_requested_termination(fmus):
 
 
 # -- scenes: validation ----------------------------------------------------------------------------
-def scene(fmus, fmu_tables: dict, connections=(), record=None, duration=0.1, hosting="in-process"):
+def scene(conformance_fmus, fmu_tables: dict, connections=(), record=None, duration=0.1, hosting="in-process"):
     tables = {}
     for name, (model, extra) in fmu_tables.items():
-        tables[name] = {"path": str(fmus[model]), **extra}
+        tables[name] = {"path": str(conformance_fmus[model]), **extra}
     return {"scene": {"name": "conformance", "duration": duration, "hosting": hosting},
             "fmu": tables,
             "connection": [{"from": a, "to": b} for a, b in connections],
             "record": record or {}}
 
 
-def test_scene_validation_of_third_party_fmus(fmus, tmp_path):
-    data = scene(fmus, {
+def test_scene_validation_of_third_party_fmus(conformance_fmus, tmp_path):
+    data = scene(conformance_fmus, {
         "a": ("Types", {"step": 0.01, "parameters": {"blob": "zz", "mode": "Medium", "label": "ok"}}),
         "b": ("Types", {"step": 0.01}),
         "c": ("Types", {"step": 0.01}),
@@ -384,8 +384,8 @@ def _run(data, out: Path) -> dict:
     return summary
 
 
-def conformance_run_data(fmus, hosting: str) -> dict:
-    return scene(fmus, {
+def conformance_run_data(conformance_fmus, hosting: str) -> dict:
+    return scene(conformance_fmus, {
         "a": ("Types", {"step": 0.01, "parameters": {"label": "conformance", "blob": "00ff10", "mode": "Fast"}}),
         "b": ("Types", {"step": 0.01}),
         "ramp": ("Ramp", {"step": 0.004}),             # not its default step (0.01): any step is allowed
@@ -399,8 +399,8 @@ def conformance_run_data(fmus, hosting: str) -> dict:
 
 
 @pytest.mark.parametrize("hosting", ["in-process", "out-of-process"])
-def test_third_party_fmus_run_in_the_master_with_their_exact_outputs(fmus, tmp_path, hosting):
-    _run(conformance_run_data(fmus, hosting), tmp_path)
+def test_third_party_fmus_run_in_the_master_with_their_exact_outputs(conformance_fmus, tmp_path, hosting):
+    _run(conformance_run_data(conformance_fmus, hosting), tmp_path)
     results = tmp_path / "results"
     base = 500  # ticks per second: lcm of 1/100 s, 1/250 s and the duration's 1/10 s
 
@@ -437,16 +437,16 @@ def test_third_party_fmus_run_in_the_master_with_their_exact_outputs(fmus, tmp_p
         assert [structural[f"v[{i}]"][j] for i in range(4)] == [0.5 * (i + 1) * end for i in range(4)]
 
 
-def test_third_party_results_do_not_depend_on_hosting(fmus, tmp_path):
+def test_third_party_results_do_not_depend_on_hosting(conformance_fmus, tmp_path):
     for hosting in ("in-process", "out-of-process"):
-        _run(conformance_run_data(fmus, hosting), tmp_path / hosting)
+        _run(conformance_run_data(conformance_fmus, hosting), tmp_path / hosting)
     for name in ("a", "b", "ramp", "fixed", "structural"):
         local = (tmp_path / "in-process" / "results" / f"{name}.csv").read_bytes()
         assert local == (tmp_path / "out-of-process" / "results" / f"{name}.csv").read_bytes(), name
 
 
-def test_terminate_simulation_ends_the_run(fmus, tmp_path):
-    data = scene(fmus, {"term": ("Terminator", {"step": 0.01, "parameters": {"stop_at": 0.05}}),
+def test_terminate_simulation_ends_the_run(conformance_fmus, tmp_path):
+    data = scene(conformance_fmus, {"term": ("Terminator", {"step": 0.01, "parameters": {"stop_at": 0.05}}),
                         "ramp": ("Ramp", {"step": 0.01})},
                  record={"term": ["y"], "ramp": ["calls"]}, duration=1.0)
     summary, text = run_scene(scene_from_dict(data, tmp_path), tmp_path / "results", progress=False)

@@ -8,7 +8,6 @@ recorded at build time by itself (nothing preloaded, no environment variables). 
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -18,8 +17,6 @@ import pytest
 
 from fmu_harness import fmu_instance
 
-HOST_SOURCE = Path(__file__).resolve().parent / "c_host" / "fmu_host.c"
-INCLUDE = Path(__file__).resolve().parent.parent / "src" / "fmi3_layer" / "include"
 RUNS = 30
 
 # name -> (steps, step size, inputs {name: (count, value)}, outputs {name: count})
@@ -28,17 +25,6 @@ CASES = {
     "Contact": (200, 0.001, {"tool_positions": (93, 0.01)}, {"tool_force": 3, "penetration_depth": 1}),
     "Tissue": (6, 1.0 / 30.0, {"contact_force": (8064, 1e-4)}, {"strain_energy": 1, "kinetic_energy": 1}),
 }
-
-
-@pytest.fixture(scope="module")
-def host(tmp_path_factory) -> Path:
-    compiler = shutil.which("cc") or shutil.which("gcc")
-    if compiler is None:
-        pytest.fail("no C compiler on PATH: the non-Python host is compiled at test time (apt-get install gcc)")
-    binary = tmp_path_factory.mktemp("c_host") / "fmu_host"
-    subprocess.run([compiler, "-O1", "-Wall", f"-I{INCLUDE}", str(HOST_SOURCE), "-o", str(binary), "-ldl", "-lz"],
-                   check=True, capture_output=True, text=True)
-    return binary
 
 
 def _arguments(name: str, fmu: Path, work: Path, state: bool = False) -> list[str]:
@@ -51,9 +37,9 @@ def _arguments(name: str, fmu: Path, work: Path, state: bool = False) -> list[st
     return args + (["--state"] if state else [])
 
 
-def _run(host: Path, args: list[str]) -> subprocess.CompletedProcess:
+def _run(c_host: Path, args: list[str]) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "LD_PRELOAD")}
-    return subprocess.run([str(host), *args], capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run([str(c_host), *args], capture_output=True, text=True, timeout=300, env=env)
 
 
 def _outputs(stdout: str) -> dict[str, np.ndarray]:
@@ -77,14 +63,9 @@ def _fmpy_outputs(name: str, fmu: Path) -> dict[str, np.ndarray]:
         return {port: np.atleast_1d(instance.get(port)) for port in outputs}
 
 
-@pytest.fixture(scope="module")
-def fmus(tissue_fmu, contact_fmu, catheter_fmu):
-    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
-
-
 @pytest.mark.parametrize("name", list(CASES))
-def test_runs_in_a_c_host_with_the_numbers_of_fmpy(host, fmus, name, tmp_path):
-    result = _run(host, _arguments(name, fmus[name], tmp_path / "run"))
+def test_runs_in_a_c_host_with_the_numbers_of_fmpy(c_host, fmus, name, tmp_path):
+    result = _run(c_host, _arguments(name, fmus[name], tmp_path / "run"))
     assert result.returncode == 0, result.stderr[-2000:]
     assert "run completed" in result.stdout and "logStatusError" not in result.stderr
     c_values = _outputs(result.stdout)
@@ -93,17 +74,17 @@ def test_runs_in_a_c_host_with_the_numbers_of_fmpy(host, fmus, name, tmp_path):
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_state_saved_serialized_and_replayed_bit_identically_in_a_c_host(host, fmus, name, tmp_path):
-    result = _run(host, _arguments(name, fmus[name], tmp_path / "run", state=True))
+def test_state_saved_serialized_and_replayed_bit_identically_in_a_c_host(c_host, fmus, name, tmp_path):
+    result = _run(c_host, _arguments(name, fmus[name], tmp_path / "run", state=True))
     assert result.returncode == 0, result.stderr[-2000:]
     assert "state replay: identical" in result.stdout
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_illegal_calls_and_a_nan_input_are_refused_and_the_host_exits_normally(host, fmus, name, tmp_path):
+def test_illegal_calls_and_a_nan_input_are_refused_and_the_host_exits_normally(c_host, fmus, name, tmp_path):
     """fmi3DoStep and fmi3Terminate before initialization, and a NaN input halfway, each return
     fmi3Error with a reason; the run then goes on, frees the instance and exits with status 0."""
-    result = _run(host, _arguments(name, fmus[name], tmp_path / "run") + ["--misuse"])
+    result = _run(c_host, _arguments(name, fmus[name], tmp_path / "run") + ["--misuse"])
     assert result.returncode == 0, result.stderr[-2000:]
     assert "misuse refused: 3 of 3" in result.stdout
     assert "illegal call sequence" in result.stderr and "only finite numbers" in result.stderr
@@ -114,10 +95,10 @@ def test_illegal_calls_and_a_nan_input_are_refused_and_the_host_exits_normally(h
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
-def test_thirty_fresh_c_host_processes_exit_normally(host, fmus, name, tmp_path):
+def test_thirty_fresh_c_host_processes_exit_normally(c_host, fmus, name, tmp_path):
     jobs = [_arguments(name, fmus[name], tmp_path / f"run{k}") for k in range(RUNS)]
     with ThreadPoolExecutor(max_workers=2) as pool:
-        results = list(pool.map(lambda args: _run(host, args), jobs))
+        results = list(pool.map(lambda args: _run(c_host, args), jobs))
     failures = [(k, r.returncode, r.stderr[-300:]) for k, r in enumerate(results)
                 if r.returncode != 0 or "run completed" not in r.stdout]
     assert failures == []
@@ -128,14 +109,14 @@ def test_thirty_fresh_c_host_processes_exit_normally(host, fmus, name, tmp_path)
 
 
 @pytest.mark.parametrize("kind, at", [("error_at", 0.05), ("bad_at", 0.03)])
-def test_a_step_that_fails_ends_the_run_and_the_host_still_exits_normally(host, synthetic_fmus, kind, at, tmp_path):
+def test_a_step_that_fails_ends_the_run_and_the_host_still_exits_normally(c_host, synthetic_fmus, kind, at, tmp_path):
     """A model failure (an exception; a NaN output) in fmi3DoStep: fmi3Error with the reason, the
     instance in the Error state, and the importer's clean-up (fmi3FreeInstance, unload) works: the
     C host reports the status and exits with 0, in every one of several fresh processes."""
     args = [str(synthetic_fmus["Faulty"]), str(tmp_path / "run"), "100", "0.01", "--param", f"{kind}:1={at!r}"]
     for k in range(5):
         args[1] = str(tmp_path / f"run{k}")
-        result = _run(host, args)
+        result = _run(c_host, args)
         assert result.returncode == 0, result.stderr[-2000:]
         assert "run ended: fmi3DoStep(" in result.stdout and "returned 3" in result.stdout
         assert "run completed" not in result.stdout

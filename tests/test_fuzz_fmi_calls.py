@@ -26,20 +26,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from fuzz_hosts import ERROR, OK, PLAIN_RUNS, WARNING, ScriptHost, compile_c_host, get_command, ports, set_command
+from fuzz_hosts import ERROR, OK, PLAIN_RUNS, WARNING, ScriptHost, get_command, ports, set_command
 
 FMUS = list(PLAIN_RUNS)
 KINDS = ["fmpy", "c"]
-
-
-@pytest.fixture(scope="module")
-def c_host(tmp_path_factory):
-    return compile_c_host(tmp_path_factory.mktemp("c_host"))
-
-
-@pytest.fixture(scope="module")
-def fmus(tissue_fmu, contact_fmu, catheter_fmu):
-    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
 
 
 @pytest.fixture(scope="module")

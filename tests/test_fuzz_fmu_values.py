@@ -23,7 +23,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from fuzz_hosts import ERROR, OK, PLAIN_RUNS, WARNING, ScriptHost, compile_c_host, get_command, ports, set_command
+from fuzz_hosts import ERROR, OK, PLAIN_RUNS, WARNING, ScriptHost, get_command, ports, set_command
 
 FMUS = list(PLAIN_RUNS)
 KINDS = ["fmpy", "c"]
@@ -31,16 +31,6 @@ KINDS = ["fmpy", "c"]
 ABSURD = 1e12
 #: No call may take longer (the slowest legal call here, a Tissue build of the default mesh, takes ~2 s).
 CALL_TIMEOUT = 60.0
-
-
-@pytest.fixture(scope="module")
-def c_host(tmp_path_factory):
-    return compile_c_host(tmp_path_factory.mktemp("c_host"))
-
-
-@pytest.fixture(scope="module")
-def fmus(tissue_fmu, contact_fmu, catheter_fmu):
-    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
 
 
 @pytest.fixture(scope="module")

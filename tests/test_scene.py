@@ -15,11 +15,6 @@ REPO = Path(__file__).resolve().parent.parent
 SHIPPED = ("aaa_endovascular", "virtual_wall", "tissue_indentation", "catheter_tube")
 
 
-@pytest.fixture(scope="module")
-def fmus(tissue_fmu, contact_fmu, catheter_fmu):
-    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
-
-
 def write_scene(tmp_path, fmus, body: str) -> Path:
     text = body
     for name, path in fmus.items():
