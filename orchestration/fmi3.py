@@ -422,17 +422,19 @@ class Fmi3Instance:
         return self._handle is None
 
     # -- typed get/set (not the hot path) ----------------------------------------------------------
+    def _typed_call(self, verb: str, fmi_type: str, vrs: Sequence[int], label: str | None):
+        """What a typed get or set needs: handle, value references, the function, the call's name
+        for errors ("fmi3GetFloat64(label)") and the log mark its messages start at."""
+        handle = self._require(verb.lower())
+        name = f"fmi3{verb}{function_suffix(fmi_type)}"
+        call = f"{name}({label})" if label else name
+        return handle, _value_references(vrs), self._function(name), call, len(self.messages)
+
     def get(self, fmi_type: str, vrs: Sequence[int], n_values: int | None = None, label: str | None = None):
         """Values of ``vrs`` (``n_values`` in all, default one each): a numpy array of the native dtype,
         a list of str (String) or a list of bytes (Binary)."""
-        handle = self._require("get")
+        handle, refs, function, call, mark = self._typed_call("Get", fmi_type, vrs, label)
         n_values = len(vrs) if n_values is None else int(n_values)
-        refs = _value_references(vrs)
-        suffix = function_suffix(fmi_type)
-        name = f"fmi3Get{suffix}"
-        function = self._function(name)
-        call = f"{name}({label})" if label else name
-        mark = len(self.messages)
         if fmi_type == "String":
             values = (ctypes.c_char_p * n_values)()
             status = function(handle, refs, len(vrs), values, n_values)
@@ -451,13 +453,7 @@ class Fmi3Instance:
 
     def set(self, fmi_type: str, vrs: Sequence[int], values, label: str | None = None) -> None:
         """Set ``vrs`` to ``values`` (numbers, str or bytes as the type needs; arrays flat)."""
-        handle = self._require("set")
-        refs = _value_references(vrs)
-        suffix = function_suffix(fmi_type)
-        name = f"fmi3Set{suffix}"
-        function = self._function(name)
-        call = f"{name}({label})" if label else name
-        mark = len(self.messages)
+        handle, refs, function, call, mark = self._typed_call("Set", fmi_type, vrs, label)
         if fmi_type == "String":
             items = [values] if isinstance(values, str) else list(values)
             array = (ctypes.c_char_p * len(items))(*[v.encode("utf-8") for v in items])
