@@ -20,8 +20,8 @@ the slowest one, of the phase within the hyperperiod and of which steps are in f
 decision is computed once per such state and then looked up (a 1 kHz loop beside a 30 Hz tissue
 has 300 ticks of hyperperiod and a few hundred states), so the per-tick work is a table lookup,
 the input routes and the output fan-out precomputed per component. A step of a host with a
-``wait_handle`` (a worker process) is started as soon as it may and collected only when a
-consumer needs it.
+host that is ``asynchronous`` (a worker process) is started as soon as it may and collected only
+when a consumer needs it.
 
 Initialization propagates outputs to inputs before the first step: components leave
 initialization mode in the order of their connections (producers first), each receiving the
@@ -254,7 +254,7 @@ class MultirateAlgorithm:
         self.check_stop()
         for comp in self.ordered:
             comp.host = self.make_host(comp.spec)
-            comp.asynchronous = comp.host.wait_handle() is not None
+            comp.asynchronous = comp.host.asynchronous
             self._pass_stop_level(comp)
         for comp in self.ordered:
             self.check_stop()

@@ -663,6 +663,7 @@ class DevicePlant:
     """
 
     continuous = False
+    asynchronous = False
 
     def __init__(self, name: str, mass: float = 0.1, damping: float = 1.0, step: float = 0.001,
                  initial_position=(0.0, 0.0, 0.0), initial_velocity=(0.0, 0.0, 0.0)):

@@ -45,8 +45,14 @@ class ComponentHost(Protocol):
     After ``finish_step``: ``terminate_requested`` (the component asks to end the run),
     ``early_return`` (it stopped before the end of the step) and ``last_successful_time`` (the
     time it reached; the end of the step unless one of the two is set).
+
+    ``asynchronous`` (a class attribute, known before ``instantiate``): ``start_step`` only sends
+    the step off (to a worker process) and ``finish_step`` waits for it, so the master starts such
+    a step as early as it may and collects it only when a consumer needs it. Otherwise the step is
+    done by ``start_step``.
     """
 
+    asynchronous: bool
     name: str
     ports: dict[str, PortInfo]
     messages: list[tuple[int, str]]
@@ -100,6 +106,8 @@ class InProcessFmu:
     ``log_to_logger=False`` keeps log messages only in ``messages`` (the worker process uses
     that: it sends them to the master, which logs them).
     """
+
+    asynchronous = False
 
     def __init__(self, name: str, description: FmuDescription, *, log_to_logger: bool = True):
         self.name = name

@@ -113,6 +113,8 @@ class WorkerFmu:
     second signal) abandons any call.
     """
 
+    asynchronous = True
+
     def __init__(self, name: str, description: FmuDescription, start_timeout: float = 120.0,
                  reply_timeout: float | None = None, setup_timeout: float = SETUP_TIMEOUT):
         self.name = name

@@ -243,3 +243,53 @@ def test_a_scene_object_runs_twice_with_the_same_results(tmp_path):
         assert summary["status"] == "completed", summary["error"]
         files.append({n: (tmp_path / str(k) / n).read_bytes() for n in ("device.csv", "contact.csv")})
     assert files[0] == files[1]
+
+
+class _StepTrace:
+    """An observer that notes when each component's step starts and when its outputs arrive."""
+
+    def __init__(self):
+        self.events: list[tuple[str, str, int]] = []
+
+    def ports(self, component):
+        return []
+
+    def subscribes(self, component):
+        return True
+
+    def before_step(self, component, tick):
+        self.events.append(("start", component.name, tick))
+
+    def stepped(self, component, tick, outputs):
+        self.events.append(("end", component.name, tick))
+
+
+@pytest.mark.parametrize("signal_hosting,overlapped", [("out-of-process", (34, 33, 33)), ("in-process", (0, 0, 0))])
+def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, signal_hosting, overlapped):
+    """A 1/30 s step in a worker is collected only when the 1 ms consumer needs it (jacobi): every
+    consumer step that starts before the worker's step ends runs meanwhile. In ticks of 1/3000 s
+    the worker steps [0, 100], [100, 200], ...; the consumer's steps [99, 102] and [198, 201] still
+    need only the sample at 0 and 100, so 34 steps overlap the first and 33 each later one. In
+    process there is nothing to overlap."""
+    from orchestration.algorithm import MultirateAlgorithm
+    from orchestration.hosting import InProcessFmu
+    from orchestration.worker import WorkerFmu
+
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
+    scene = scene_from_dict(data, tmp_path)
+    hosts = {"signal": WorkerFmu if signal_hosting == "out-of-process" else InProcessFmu, "echo": InProcessFmu}
+    trace = _StepTrace()
+    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: hosts[spec.name](spec.name, spec.description),
+                                   [trace])
+    try:
+        algorithm.setup()
+        algorithm.initialize()
+        algorithm.run(lambda: 0.0)
+    finally:
+        algorithm.teardown()
+    events = trace.events
+    for k in range(3):  # each of the worker's steps
+        begin = events.index(("start", "signal", 100 * k))
+        end = events.index(("end", "signal", 100 * (k + 1)))
+        echo_steps = [e for e in events[begin:end] if e[:2] == ("end", "echo")]
+        assert len(echo_steps) == overlapped[k], (k, echo_steps)

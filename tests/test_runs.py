@@ -43,13 +43,17 @@ def test_catheter_tube_is_deterministic_and_hosting_independent(built, tmp_path)
 
 
 def test_tissue_scene_out_of_process_equals_in_process(built, tmp_path):
-    """The 30 Hz tissue steps concurrently with the 1 kHz loop out of process: same numbers."""
+    """The 30 Hz tissue steps concurrently with the 1 kHz loop out of process (every FMU in a
+    worker, or the scene's own choice: the tissue alone): same numbers as all in process."""
     scene = load_scene("tissue_indentation", {"duration": 0.8})
-    for hosting in ("in-process", "out-of-process"):
-        summary, _ = run_scene(scene, tmp_path / hosting, hosting=hosting, progress=False, plots=False)
+    for hosting in ("in-process", "out-of-process", None):
+        summary, _ = run_scene(scene, tmp_path / str(hosting), hosting=hosting, progress=False, plots=False)
         assert summary["status"] == "completed", summary["error"]
+    assert summary["hosting"] == "mixed (out-of-process: tissue)"
     for name in ("tissue.csv", "contact.csv"):
-        assert (tmp_path / "in-process" / name).read_bytes() == (tmp_path / "out-of-process" / name).read_bytes()
+        expected = (tmp_path / "in-process" / name).read_bytes()
+        assert (tmp_path / "out-of-process" / name).read_bytes() == expected
+        assert (tmp_path / "None" / name).read_bytes() == expected
     _, contact = read_stream(tmp_path / "in-process" / "contact.csv")
     assert np.max(contact["penetration_depth"]) > 0
     frames = sorted((tmp_path / "in-process" / "aaa_wall").glob("*.vtu"))
