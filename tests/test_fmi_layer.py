@@ -11,6 +11,8 @@
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from fmpy.fmi1 import FMICallException
@@ -372,3 +374,54 @@ def test_fmu_state_restores_bit_identically(name, catheter_fmu, contact_fmu, tis
         fresh.slave.freeFMUState(restored)
     for port in first:
         np.testing.assert_array_equal(replay[port], first[port])
+
+
+_PRELOAD_PROBE = r"""
+import json, sys
+from numba.core.registry import CPUDispatcher
+from orchestration.hosting import InProcessFmu
+from orchestration.ports import read_fmu
+
+description = read_fmu(sys.argv[1], {"n_tool_points": 1})  # a probe: port sizes for one point
+
+def loaded():
+    return {f"{name}.{attr}": len(d.overloads) for name, module in list(sys.modules.items())
+            if name.startswith(description.model_identifier + "_") and module is not None
+            for attr, d in vars(module).items() if isinstance(d, CPUDispatcher)}
+
+host = InProcessFmu("contact", description)
+host.instantiate()
+at_instantiation = loaded()
+host.set_values({"tool": "probe", "n_tool_points": 1})
+host.enter_initialization(0.0)
+host.configure(["tool_positions"], ["tool_force"])
+host.exit_initialization()
+for k in range(30):  # a probe from the lumen into the default wall
+    host.start_step(k * 1e-3, 1e-3, {"tool_positions": [0.0227 + 1e-4 * k, 0.0, 0.065]})
+    host.finish_step()
+host.terminate()
+print(json.dumps([at_instantiation, loaded()]))
+"""
+
+
+def test_cached_kernels_are_loaded_at_instantiation_not_in_a_step(contact_fmu, tmp_path):
+    """numba loads a cached kernel at its first call (5-50 ms, a stall in a 1 kHz loop): the FMU
+    loads them when it is instantiated. The first process fills the cache; in the second, no
+    kernel is loaded after instantiation."""
+    import json
+    import subprocess
+    import sys
+
+    env = {**os.environ, "AAA_COSIM_NUMBA_CACHE": str(tmp_path / "numba")}
+    runs = []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-c", _PRELOAD_PROBE, str(contact_fmu)], env=env,
+                              capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    (first_instantiated, first_end), (instantiated, end) = runs
+    assert sum(first_instantiated.values()) == 0                 # an empty cache: nothing to load
+    used = {name for name, count in first_end.items() if count}
+    assert len(used) >= 5                                        # the steps compiled kernels
+    assert {name for name, count in instantiated.items() if count} >= used
+    assert end == instantiated                                   # ... and the steps loaded none

@@ -569,6 +569,8 @@ def _load_package(resources: Path, unique: str, package: str, token: str):
         for path in sorted(package_dir.glob("*.py")):
             if path.stem != "__init__":
                 importlib.import_module(unique + "." + path.stem)
+        # ... and load the cached kernels now, not at their first call inside a step
+        cache.load_cached_kernels(unique)
     except BaseException:
         for name in [n for n in sys.modules if n == unique or n.startswith(unique + ".")]:
             del sys.modules[name]

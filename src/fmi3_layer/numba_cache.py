@@ -62,3 +62,44 @@ def enable_stable_numba_cache(package_dir, module_name: str) -> None:
 
     caching.CacheImpl._locator_classes.insert(0, ContentAddressedLocator)
     setattr(caching, marker, True)
+
+
+def load_cached_kernels(module_prefix: str) -> int:
+    """Load now every kernel overload the cache holds for the modules named ``module_prefix`` or
+    ``module_prefix.*``; returns how many were loaded.
+
+    numba loads a cached overload at the kernel's first call: 5-50 ms each, which lands inside a
+    step (the first contact of a run loads the tangent kernels) and stalls a 1 kHz loop waiting for
+    it. Called at instantiation, that cost moves to the setup. Only overloads cached for this very
+    code and machine are loaded (nothing is compiled here); anything unexpected in numba's
+    internals leaves the lazy loading as it was.
+    """
+    import logging
+    import sys
+
+    log = logging.getLogger(__name__)
+    try:
+        from numba.core.caching import FunctionCache
+        from numba.core.registry import CPUDispatcher
+    except ImportError:
+        return 0
+    loaded = 0
+    modules = [m for name, m in list(sys.modules.items())
+               if m is not None and (name == module_prefix or name.startswith(module_prefix + "."))]
+    for module in modules:
+        for dispatcher in list(vars(module).values()):
+            if not isinstance(dispatcher, CPUDispatcher) or not isinstance(dispatcher._cache, FunctionCache):
+                continue
+            try:
+                cache = dispatcher._cache
+                codegen = dispatcher.targetctx.codegen()
+                for key in cache._cache_file._load_index():
+                    signature = key[0]
+                    if key != cache._index_key(signature, codegen) or signature in dispatcher.overloads:
+                        continue  # another machine's or another version's code; or loaded already
+                    dispatcher.compile(signature)
+                    loaded += 1
+            except Exception as exc:  # numba internals changed: the kernels load at first call instead
+                log.debug("preloading %s failed: %s", getattr(dispatcher, "__name__", dispatcher), exc)
+                break
+    return loaded
