@@ -146,7 +146,7 @@ class Simulation:
             now = time.perf_counter()
             wall = now - loop_start if loop_start is not None else 0.0
             setup_time = (loop_start if loop_start is not None else now) - t_setup
-            progress.finished(algorithm)
+            algorithm.notify("finished")  # progress bar closed, CPUs given back
             self.final_outputs = algorithm.keep_outputs()
             recording.close()
             messages = algorithm.teardown()

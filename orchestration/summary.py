@@ -47,6 +47,8 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
             line += (f"; lateness p50 {1e3 * d['lateness_p50_s']:.3f} ms, p99 {1e3 * d['lateness_p99_s']:.3f} ms, "
                      f"max {1e3 * d['lateness_max_s']:.3f} ms")
         lines.append(line)
+        if d.get("cpus"):
+            lines.append("  CPUs: " + ", ".join(f"{name} on {cpu}" for name, cpu in d["cpus"].items()))
     messages = summary.get("fmu_messages", [])
     errors = [m for m in messages if m["status"] in ("error", "fatal")]
     lines.append(f"  FMU messages: {len(messages)} ({len(errors)} errors)" if messages else "  FMU messages: none")

@@ -263,6 +263,11 @@ class WorkerFmu:
         """The pipe: readable when the step is done (or the worker died)."""
         return self._conn
 
+    @property
+    def pid(self) -> int | None:
+        """The worker process's id (None before instantiate)."""
+        return None if self._process is None else self._process.pid
+
     # -- shutdown ----------------------------------------------------------------------------------
     def terminate(self) -> None:
         """Shut the worker down (fmi3Terminate, free), kill it if it does not stop, free shared memory.

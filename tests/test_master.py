@@ -7,6 +7,7 @@ documented rule (evaluation tick, rate transition), independently of the master'
 from __future__ import annotations
 
 import math
+import os
 from fractions import Fraction
 
 import numpy as np
@@ -293,3 +294,39 @@ def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, si
         end = events.index(("end", "signal", 100 * (k + 1)))
         echo_steps = [e for e in events[begin:end] if e[:2] == ("end", "echo")]
         assert len(echo_steps) == overlapped[k], (k, echo_steps)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_path):
+    """--realtime: this process keeps one CPU, the worker gets another, and this process has all
+    its CPUs back when the run ends (also when it fails)."""
+    from orchestration.algorithm import MultirateAlgorithm
+    from orchestration.hosting import InProcessFmu
+    from orchestration.observers import RealtimePacing
+    from orchestration.worker import WorkerFmu
+
+    before = os.sched_getaffinity(0)
+    seen = {}
+
+    class Probe:
+        def started(self, algorithm):
+            seen["master"] = os.sched_getaffinity(0)
+            seen["worker"] = os.sched_getaffinity(algorithm.components["signal"].host.pid)
+
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
+    scene = scene_from_dict(data, tmp_path)
+    hosts = {"signal": WorkerFmu, "echo": InProcessFmu}
+    pacing = RealtimePacing()
+    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: hosts[spec.name](spec.name, spec.description),
+                                   [pacing, Probe()])
+    try:
+        algorithm.setup()
+        algorithm.initialize()
+        algorithm.run(lambda: 0.0)
+    finally:
+        algorithm.notify("finished")
+        algorithm.teardown()
+    cpus = pacing.report()["cpus"]
+    assert seen["master"] == {cpus["master"]} and seen["worker"] == {cpus["signal"]}
+    assert cpus["master"] != cpus["signal"] and {cpus["master"], cpus["signal"]} <= before
+    assert os.sched_getaffinity(0) == before
