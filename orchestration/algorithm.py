@@ -465,7 +465,10 @@ class MultirateAlgorithm:
         for c in pending:
             if c.running or c.time >= c.end or c.time - t_min > lookahead or not self._ready(c):
                 continue
-            if best is None or (c.time, c.rank) < (best.time, best.rank):
+            # Earliest first; at the same tick the steps done here go before a worker's start,
+            # which has a whole step to run and would hold up this tick (at a 30 Hz frame: its
+            # averaged inputs, the copy into shared memory) for a few tenths of a millisecond.
+            if best is None or (c.time, c.asynchronous, c.rank) < (best.time, best.asynchronous, best.rank):
                 best = c
         if best is not None:
             return True, best.rank
