@@ -27,6 +27,13 @@ class Recording:
         self.surfaces = list(scene.surfaces) if surfaces else []
         self.recorder = None
         self._recorded = {name: list(ports) for name, ports in scene.record.items()}
+        # Surface frames are written by a process of their own, started now: its imports (about
+        # half a second) run beside the FMUs' set-up, not into the first steps.
+        self._surface_writer = None
+        if self.surfaces:
+            from .surface_writer import SurfaceWriter
+
+            self._surface_writer = SurfaceWriter(self.out_dir)
 
     def ports(self, component: str) -> list[str]:
         ports = list(self._recorded.get(component, []))
@@ -39,7 +46,7 @@ class Recording:
         from .recording import Recorder
 
         self.seconds = algorithm.seconds
-        self.recorder = Recorder(self.out_dir)
+        self.recorder = Recorder(self.out_dir, surface_writer=self._surface_writer)
         for name, ports in self._recorded.items():
             spec = self.scene.components[name]
             self.recorder.add_stream(name, [(p, spec.ports[p].size, spec.ports[p].unit) for p in ports])
@@ -68,7 +75,14 @@ class Recording:
 
     def close(self) -> None:
         if self.recorder is not None:
-            self.recorder.close()
+            self.recorder.close()  # closes the surface writer too, once every frame is on disk
+        elif self._surface_writer is not None:  # the run ended before recording began
+            self._surface_writer.close()
+
+    @property
+    def processes(self) -> dict[str, int]:
+        """Helper processes of the run by name (the surface writer), for the real-time pacing."""
+        return {} if self._surface_writer is None else {"surface writer": self._surface_writer.pid}
 
     @property
     def files(self) -> dict:
@@ -153,12 +167,12 @@ class RealtimePacing:
 
     A paced run owns the machine, as a haptic loop does: the pacing sleeps until ``SPIN_S`` before
     a step is due and spins the rest, and, with two or more CPUs allowed, this process keeps the
-    first one and the worker processes share the others (``cpus`` in the report) until the run
-    ends. Otherwise a worker woken for its step is often placed on this process's CPU and takes
-    it for milliseconds. Measured on this 2-core VM (default scene, 4 s, 8000 paced steps, three
-    two or three runs each): sleeping to the deadline missed 950-1470; spinning the last 0.3 ms, 670-690;
-    spinning and CPUs apart, 420-550 (what remains is the contact's work on each new tissue frame,
-    1.5-2.5 ms).
+    first one while the worker processes and helper processes (the surface writer) share the
+    others (``cpus`` in the report) until the run ends. Otherwise a worker woken for its step is
+    often placed on this process's CPU and takes it for milliseconds. Measured on this 2-core VM
+    (default scene without surfaces, 4 s, 8000 paced steps, two or three runs each): sleeping to
+    the deadline missed 950-1470; spinning the last 0.3 ms, 670-690; spinning and CPUs apart,
+    420-550 (what remains is mostly the contact's work on each new tissue frame, 1.5-2.5 ms).
     """
 
     def __init__(self, pace: bool = True):
@@ -178,6 +192,8 @@ class RealtimePacing:
 
     def initialized(self, algorithm) -> None:
         workers = {c.name: c.host.pid for c in algorithm.ordered if getattr(c.host, "pid", None) is not None}
+        for observer in algorithm.observers:  # helper processes (the surface writer)
+            workers.update(getattr(observer, "processes", {}))
         try:
             allowed = sorted(os.sched_getaffinity(0))
         except (AttributeError, OSError):  # not Linux

@@ -157,3 +157,23 @@ def stop_signals() -> Iterator[StopRequest]:
         if request.requested:
             logger.debug("run stopped: %s (%d signal(s)); delivering it to the caller", request.reason, request.count)
             signal.raise_signal(request.signum)
+
+
+def start_shielded(process) -> None:
+    """Start a ``multiprocessing`` child that cannot die of a stop signal sent to the whole group
+    (Ctrl-C in the terminal) during its interpreter start-up.
+
+    The child inherits this thread's signal mask across fork and exec: with SIGINT and SIGTERM
+    blocked they stay pending until the child's own code decides (workers ignore SIGINT, then
+    unblock). A child dying during start-up would also hang ``start()`` forever: it writes the
+    pickled process object into a pipe whose reading end it still holds itself. The resource
+    tracker is started first: starting it unblocks both signals behind our back.
+    """
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        process.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)

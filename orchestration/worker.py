@@ -40,10 +40,10 @@ import numpy as np
 from .errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
 from .hosting import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
 from .ports import FmuDescription, PortInfo
+from .stopping import STOP_SIGNALS, start_shielded
 
 logger = logging.getLogger(__name__)
 
-_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 #: While waiting for a reply, how often the master checks that the worker is still alive (ms).
 _LIVENESS_INTERVAL_MS = 500
@@ -159,20 +159,7 @@ class WorkerFmu:
         description = dataclasses.replace(self.description, model_description=None)
         self._process = context.Process(target=_worker_main, args=(child_end, self.name, description),
                                         name=f"fmu-worker-{self.name}", daemon=True)
-        # The child inherits this thread's signal mask across fork and exec: with SIGINT and
-        # SIGTERM blocked it cannot die of a signal sent to the group during its interpreter
-        # start-up, before _worker_main ignores SIGINT. (A child dying then would also hang
-        # start() forever: it writes the pickled process object into a pipe whose reading end it
-        # still holds itself.) Here they stay pending and are handled right after. The resource
-        # tracker is started first: starting it unblocks both signals behind our back.
-        from multiprocessing import resource_tracker
-
-        resource_tracker.ensure_running()
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-        try:
-            self._process.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        start_shielded(self._process)  # _worker_main ignores SIGINT, then unblocks
         child_end.close()  # so that the worker's death reads as end-of-file here
         self._conn = parent_end
         self._sent_at = time.monotonic()
@@ -469,7 +456,7 @@ def _worker_main(conn, name: str, description: FmuDescription) -> None:
     # before the spawn (see instantiate): ignore SIGINT, then unblock, which discards a pending
     # SIGINT (a pending SIGTERM ends the worker now, as it would have during start-up).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     state = _WorkerState(name, description)
     host = state.host
 

@@ -224,6 +224,82 @@ def test_surface_series_frames_read_back_and_pvd_lists_every_frame(tmp_path):
             bad.write_surface("s", 0.0, np.zeros((4, 3)), {"depth": np.zeros(5)})
 
 
+def _surface_frames(tmp_path, writer):
+    """Four frames of a small surface through a recorder (with ``writer`` or without), read back."""
+    rng = np.random.default_rng(5)
+    triangles = np.array([[0, 1, 2], [0, 2, 3], [1, 3, 2], [0, 3, 1]])
+    with Recorder(tmp_path, surface_writer=writer) as rec:
+        pvd = rec.add_surface_series("tissue", triangles)
+        for k in range(4):
+            rec.write_surface("tissue", k / 30, rng.standard_normal((4, 3)), {"depth": rng.standard_normal(4)})
+        files = rec.files
+    datasets = ET.parse(pvd).getroot().find("Collection").findall("DataSet")
+    meshes = [meshio.read(tmp_path / d.get("file")) for d in datasets]
+    return files, [float(d.get("timestep")) for d in datasets], meshes
+
+
+def test_surface_frames_written_by_the_writer_process_equal_those_written_in_process(tmp_path):
+    from orchestration.surface_writer import SurfaceWriter
+
+    (tmp_path / "a").mkdir()
+    writer = SurfaceWriter(tmp_path / "b")
+    pid = writer.pid
+    files_a, times_a, meshes_a = _surface_frames(tmp_path / "a", None)
+    files_b, times_b, meshes_b = _surface_frames(tmp_path / "b", writer)   # close() waited for every frame
+    assert times_b == times_a == [k / 30 for k in range(4)]
+    assert [f.relative_to(tmp_path / "b") for f in files_b.values()] == [f.relative_to(tmp_path / "a")
+                                                                          for f in files_a.values()]
+    for a, b in zip(meshes_a, meshes_b):
+        assert np.array_equal(a.points, b.points) and np.array_equal(a.point_data["depth"], b.point_data["depth"])
+        assert np.array_equal(a.cells_dict["triangle"], b.cells_dict["triangle"])
+    assert not list(tmp_path.rglob("*.tmp"))
+    with pytest.raises(ProcessLookupError):  # the writer has ended
+        os.kill(pid, 0)
+
+
+def test_surface_frames_sent_before_the_recording_process_dies_are_all_written(tmp_path):
+    """SIGKILL right after the last frame is queued: the writer writes every frame it was sent
+    and ends; Ctrl-C sent to the group does not stop it first."""
+    script = textwrap.dedent(f"""
+        import os, signal, sys, time
+        import numpy as np
+        from pathlib import Path
+        from orchestration.recording import Recorder
+        from orchestration.surface_writer import SurfaceWriter
+        if __name__ == "__main__":
+            out = Path({str(tmp_path)!r})
+            writer = SurfaceWriter(out)
+            rec = Recorder(out, surface_writer=writer)
+            rec.add_surface_series("wall", np.array([[0, 1, 2], [0, 2, 3]]))
+            for k in range(20):
+                rec.write_surface("wall", k / 30, np.full((4, 3), float(k)))
+            while writer._outbox.qsize():  # every frame handed to the pipe
+                time.sleep(0.001)
+            print(writer.pid, flush=True)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            os.killpg(0, signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120,
+                          start_new_session=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    pid = int(proc.stdout.split()[0])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        raise AssertionError("the writer outlived the recording process by 30 s")
+    frames = sorted((tmp_path / "wall").glob("*.vtu"))
+    assert len(frames) == 20
+    assert np.all(meshio.read(frames[-1]).points == 19.0)
+    datasets = ET.parse(tmp_path / "wall.pvd").getroot().find("Collection").findall("DataSet")
+    assert len(datasets) == 20
+
+
 def test_summary_json_round_trip(tmp_path):
     summary = {"title": "AAA run", "real_time_factor": np.float64(1.25), "steps": np.int64(30000),
                "peak_forces": {"contact.tool_force": {"value": 2.5, "unit": "N"}},

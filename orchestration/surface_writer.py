@@ -1,0 +1,179 @@
+"""Surface frames (VTU) written by a process of their own, beside the run.
+
+Writing one frame of the default wall (2,688 points, 5,376 triangles) takes about 8 ms, most of it
+meshio's zlib compression: every third tissue frame, that is 20-40 % of the default scene's wall
+time, and a stall of 8 ms in the 1 kHz loop (with ``--realtime``, about 70 % of the missed haptic
+deadlines of the default scene were these). The recorder hands each frame to this
+process instead (one pipe message of the positions) and goes on.
+
+Nothing is lost: frames are written in the order they were sent, each file and the rewritten
+``.pvd`` atomically (:func:`write_frame`); :meth:`SurfaceWriter.close` waits until every frame is
+on disk. When the run's process dies, the writer reads the frames still in the pipe, writes them
+and exits; Ctrl-C and SIGTERM sent to the whole process group do not stop it before that.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import queue
+import signal
+import threading
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from .stopping import STOP_SIGNALS, start_shielded
+
+log = logging.getLogger(__name__)
+
+#: How long close() waits for the frames still queued (a frame takes ~10 ms; a run sends a few
+#: hundred, and with every CPU busy the writer gets little time until the run ends).
+CLOSE_TIMEOUT_S = 600.0
+
+
+def write_frame(frame: Path, pvd: Path, out_dir: Path, frames: list, t: float, positions: np.ndarray,
+                triangles: np.ndarray, point_data: dict) -> None:
+    """Write ``frame`` (VTU) and rewrite ``pvd`` to list ``frames`` plus this one, each atomically."""
+    import meshio  # only runs that record surfaces pay for the import
+
+    tmp = frame.with_name(f".{frame.name}.tmp")
+    meshio.write(tmp, meshio.Mesh(positions, [("triangle", triangles)], point_data=point_data), file_format="vtu")
+    os.replace(tmp, frame)  # the .pvd never names a half-written frame
+    frames.append((t, frame))
+    write_pvd(pvd, out_dir, frames)
+
+
+def write_pvd(pvd: Path, out_dir: Path, frames: list) -> None:
+    """The ParaView collection of ``frames`` ((time, path) pairs), written atomically."""
+    root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+    collection = ET.SubElement(root, "Collection")
+    for t, frame in frames:
+        ET.SubElement(collection, "DataSet", timestep=repr(t), group="", part="0",
+                      file=frame.relative_to(out_dir).as_posix())
+    ET.indent(root)
+    tmp = pvd.with_name(f".{pvd.name}.tmp")
+    tmp.write_text('<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n", encoding="utf-8")
+    os.replace(tmp, pvd)
+
+
+def _yield_to_the_run() -> None:
+    """Run only when a CPU would otherwise idle (Linux SCHED_IDLE; elsewhere the lowest priority).
+
+    Woken by the run's process, a writer of normal priority is often placed on that process's CPU
+    and shares it: measured on the default scene, the 1 kHz loop then spent 0.3-0.4 s of its 1.5 s
+    off its CPU; at SCHED_IDLE the writer waits for a free CPU (between the tissue worker's steps)
+    and never preempts the run's processes.
+    """
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.nice(19)
+    except OSError:
+        pass
+
+
+class SurfaceWriter:
+    """The writer process: ``add_series`` once per surface, ``write`` per frame, ``close`` at the end.
+
+    Validation stays with the caller (the recorder); errors of the writer itself (a full disk) are
+    logged by it as they happen and returned by ``close``.
+    """
+
+    def __init__(self, out_dir: Path):
+        context = multiprocessing.get_context("spawn")
+        self._conn, child_end = context.Pipe(duplex=True)
+        self._process = context.Process(target=_serve, args=(child_end, str(out_dir)), name="surface-writer",
+                                        daemon=True)
+        start_shielded(self._process)  # _serve ignores both: it ends when this process closes the pipe
+        child_end.close()
+        # A frame (64 KB for the default wall) fills the pipe: sending it blocks until the writer
+        # reads, and the writer runs only on an idle CPU. This thread waits for that instead of
+        # the run (the write releases the GIL).
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._sender = threading.Thread(target=self._send_all, name="surface-sender", daemon=True)
+        self._sender.start()
+        self._send_error: str | None = None
+        self._closed = False
+
+    @property
+    def pid(self) -> int:
+        return self._process.pid
+
+    def add_series(self, name: str, triangles: np.ndarray, pvd: Path) -> None:
+        self._outbox.put(("series", name, triangles, str(pvd)))
+
+    def write(self, name: str, frame: Path, t: float, positions: np.ndarray, point_data: dict) -> None:
+        """Queue one frame (the arrays are the writer's from now on: pass copies)."""
+        self._outbox.put(("frame", name, str(frame), t, positions, point_data))
+
+    def _send_all(self) -> None:
+        while True:
+            message = self._outbox.get()
+            if message is None:
+                return
+            if self._send_error is None:
+                try:
+                    self._conn.send(message)
+                except (OSError, ValueError) as exc:  # the writer is gone: close() reports it
+                    self._send_error = f"{type(exc).__name__}: {exc}"
+
+    def close(self) -> list[str]:
+        """Wait until every frame sent is written; the writer's errors, if any. Idempotent."""
+        if self._closed:
+            return []
+        self._closed = True
+        self._outbox.put(None)
+        self._sender.join()
+        errors = [f"the surface writer process ended before writing every frame (exit code "
+                  f"{self._process.exitcode})"]
+        try:
+            self._conn.send(("close",))
+            if self._conn.poll(CLOSE_TIMEOUT_S):
+                errors = self._conn.recv()
+        except (OSError, EOFError) as exc:
+            errors[0] += f": {self._send_error or exc}"
+        finally:
+            self._conn.close()
+            self._process.join(timeout=5)
+            if self._process.is_alive():
+                self._process.kill()
+                self._process.join()
+        return errors
+
+
+def _serve(conn, out_dir: str) -> None:
+    """The writer's loop: frames in the order sent, until "close" or until the run's process is gone."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    _yield_to_the_run()
+    import meshio  # noqa: F401  (now, not at the first frame, which the run is waiting to see written)
+
+    out = Path(out_dir)
+    series: dict[str, tuple] = {}
+    errors: list[str] = []
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the run's process is gone: everything it sent is written
+            return
+        kind = message[0]
+        if kind == "close":
+            conn.send(errors)
+            return
+        try:
+            if kind == "series":
+                _, name, triangles, pvd = message
+                series[name] = (triangles, Path(pvd), [])
+            else:
+                _, name, frame, t, positions, point_data = message
+                triangles, pvd, frames = series[name]
+                write_frame(Path(frame), pvd, out, frames, t, positions, triangles, point_data)
+        except Exception as exc:  # e.g. a full disk: say so, keep serving (the next frame may fit)
+            errors.append(f"{message[1]}: {type(exc).__name__}: {exc}")
+            log.error("surface writer: %s", errors[-1])
