@@ -19,9 +19,9 @@ The schedule. Which call comes next is a function of the components' tick counts
 the slowest one, of the phase within the hyperperiod and of which steps are in flight; the
 decision is computed once per such state and then looked up (a 1 kHz loop beside a 30 Hz tissue
 has 300 ticks of hyperperiod and a few hundred states), so the per-tick work is a table lookup,
-the input routes and the output fan-out precomputed per component. A step of a host with a
-host that is ``asynchronous`` (a worker process) is started as soon as it may and collected only
-when a consumer needs it.
+the input routes and the output fan-out precomputed per component. A step of a host that is
+``asynchronous`` (a worker process) is started as soon as it may, after the in-process steps of
+the same tick, and collected only when a consumer needs it.
 
 Initialization propagates outputs to inputs before the first step: components leave
 initialization mode in the order of their connections (producers first), each receiving the

@@ -191,20 +191,20 @@ class RealtimePacing:
         self._fastest = min((c.step for c in algorithm.ordered), default=None)
 
     def initialized(self, algorithm) -> None:
-        workers = {c.name: c.host.pid for c in algorithm.ordered if getattr(c.host, "pid", None) is not None}
+        others = {c.name: c.host.pid for c in algorithm.ordered if getattr(c.host, "pid", None) is not None}
         for observer in algorithm.observers:  # helper processes (the surface writer)
-            workers.update(getattr(observer, "processes", {}))
+            others.update(getattr(observer, "processes", {}))
         try:
             allowed = sorted(os.sched_getaffinity(0))
         except (AttributeError, OSError):  # not Linux
             return
-        if not workers or len(allowed) < 2:
+        if not others or len(allowed) < 2:
             return
         try:
             os.sched_setaffinity(0, {allowed[0]})
             self._own_cpus = set(allowed)
             self.cpus["master"] = allowed[0]
-            for k, (name, pid) in enumerate(workers.items()):
+            for k, (name, pid) in enumerate(others.items()):
                 cpu = allowed[1 + k % (len(allowed) - 1)]
                 os.sched_setaffinity(pid, {cpu})
                 self.cpus[name] = cpu

@@ -59,13 +59,8 @@ def write_pvd(pvd: Path, out_dir: Path, frames: list) -> None:
 
 
 def _yield_to_the_run() -> None:
-    """Run only when a CPU would otherwise idle (Linux SCHED_IDLE; elsewhere the lowest priority).
-
-    Woken by the run's process, a writer of normal priority is often placed on that process's CPU
-    and shares it: measured on the default scene, the 1 kHz loop then spent 0.3-0.4 s of its 1.5 s
-    off its CPU; at SCHED_IDLE the writer waits for a free CPU (between the tissue worker's steps)
-    and never preempts the run's processes.
-    """
+    """Run only when a CPU would otherwise idle (Linux SCHED_IDLE; elsewhere the lowest priority):
+    the writer never preempts the 1 kHz loop or the tissue worker, it uses the time they leave."""
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
         return
@@ -92,8 +87,9 @@ class SurfaceWriter:
         start_shielded(self._process)  # _serve ignores both: it ends when this process closes the pipe
         child_end.close()
         # A frame (64 KB for the default wall) fills the pipe: sending it blocks until the writer
-        # reads, and the writer runs only on an idle CPU. This thread waits for that instead of
-        # the run (the write releases the GIL).
+        # reads, and the writer runs only on an idle CPU. Sent from the run's thread, the default
+        # scene's 1 kHz loop spent 0.3-0.4 s of its 1.5 s waiting in these sends (measured); this
+        # thread waits instead (the write releases the GIL).
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._sender = threading.Thread(target=self._send_all, name="surface-sender", daemon=True)
         self._sender.start()
