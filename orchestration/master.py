@@ -206,6 +206,8 @@ class Simulation:
         # every file but the individual surface frames (the .pvd lists those)
         summary["results"] = {"folder": str(self.out_dir),
                               **{k: str(v) for k, v in recording.files.items() if not k.endswith("]")}}
+        if recording.surface_errors:  # frames the surface writer could not write (a full disk)
+            summary["results"]["surface_errors"] = recording.surface_errors
         return summary
 
 

@@ -80,6 +80,11 @@ class Recording:
             self._surface_writer.close()
 
     @property
+    def surface_errors(self) -> list[str]:
+        """What the surface writer could not write (known once closed)."""
+        return self.recorder.surface_errors if self.recorder is not None else []
+
+    @property
     def processes(self) -> dict[str, int]:
         """Helper processes of the run by name (the surface writer), for the real-time pacing."""
         return {} if self._surface_writer is None else {"surface writer": self._surface_writer.pid}

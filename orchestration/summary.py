@@ -56,4 +56,6 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
         lines.append(f"    {m['component']} [{m['status']}] {m['message'][:200]}")
     lines.append(f"  results in {summary['results']['folder']}/: summary.json, a CSV per component, "
                  "PNG plots, surfaces as .pvd (ParaView)")
+    for error in summary["results"].get("surface_errors", [])[:5]:
+        lines.append(f"  surface frame not written: {error}")
     return "\n".join(lines)

@@ -300,6 +300,27 @@ def test_surface_frames_sent_before_the_recording_process_dies_are_all_written(t
     assert len(datasets) == 20
 
 
+def test_a_frame_the_writer_process_cannot_write_is_reported_and_the_others_are_kept(tmp_path, caplog):
+    from orchestration.surface_writer import SurfaceWriter
+
+    rec = Recorder(tmp_path, surface_writer=SurfaceWriter(tmp_path))
+    rec.add_surface_series("wall", np.array([[0, 1, 2], [0, 2, 3]]))
+    rec.write_surface("wall", 0.0, np.zeros((4, 3)))
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "wall" / "wall_00000.vtu").exists():  # frame 0 written before its folder goes
+        assert time.monotonic() < deadline, "the writer wrote no frame in 60 s"
+        time.sleep(0.01)
+    blocked = tmp_path / "wall_moved"
+    (tmp_path / "wall").rename(blocked)
+    (tmp_path / "wall").write_text("a file where the frames' folder was")
+    rec.write_surface("wall", 1 / 30, np.ones((4, 3)))
+    with caplog.at_level(logging.ERROR, logger="orchestration.recording"):
+        rec.close()
+    assert len(rec.surface_errors) == 1 and "wall" in rec.surface_errors[0]
+    assert "surface frames: wall" in caplog.text
+    assert [p.name for p in blocked.glob("*.vtu")] == ["wall_00000.vtu"]      # the frame before is kept
+
+
 def test_summary_json_round_trip(tmp_path):
     summary = {"title": "AAA run", "real_time_factor": np.float64(1.25), "steps": np.int64(30000),
                "peak_forces": {"contact.tool_force": {"value": 2.5, "unit": "N"}},
