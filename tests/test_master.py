@@ -300,7 +300,7 @@ def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, si
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
 def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_path):
     """--realtime: this process keeps one CPU, the worker gets another, and this process has all
-    its CPUs back when the run ends (also when it fails)."""
+    its CPUs back once the run is finished (the master notifies "finished" however a run ends)."""
     from orchestration.algorithm import MultirateAlgorithm
     from orchestration.hosting import InProcessFmu
     from orchestration.observers import RealtimePacing
