@@ -184,20 +184,18 @@ def _run_command(args, stop) -> int:
     if args.out is not None and not args.out.strip():
         print(f"error: {EMPTY_OUT}", file=sys.stderr)
         return EXIT_USAGE
-    folder = ResultFolder(args.out) if args.out is not None else None
     try:
-        if folder is not None:
-            folder.acquire()
-        return _prepare_and_run(args, stop, folder)
+        if args.out is None:
+            return _prepare_and_run(args, stop, None)
+        with ResultFolder(args.out) as folder:
+            return _prepare_and_run(args, stop, folder)
     except OutputFolderError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    finally:
-        if folder is not None:
-            folder.release()
 
 
 def _prepare_and_run(args, stop, folder) -> int:
+    """Build, load the scene, run it into ``folder`` (None: the default ``results/<scene>``)."""
     from .build import BuildError, ensure_fmus_built
     from .master import Simulation
     from .outfolder import ResultFolder
@@ -221,12 +219,8 @@ def _prepare_and_run(args, stop, folder) -> int:
     if scene is None:
         return EXIT_USAGE
     if folder is None:
-        folder = ResultFolder(Path("results") / scene.name)
-        folder.acquire()
-        try:
+        with ResultFolder(Path("results") / scene.name) as folder:
             return _simulate(args, stop, scene, folder, Simulation)
-        finally:
-            folder.release()
     return _simulate(args, stop, scene, folder, Simulation)
 
 

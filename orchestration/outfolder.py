@@ -23,6 +23,7 @@ by :meth:`ResultFolder.acquire`, before anything runs.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import fcntl
@@ -83,7 +84,8 @@ def _pid_alive(pid: int) -> bool:
 
 
 class ResultFolder:
-    """``<out>`` for one run: :meth:`acquire` before, :meth:`publish` at the end, :meth:`release` always."""
+    """``<out>`` for one run: :meth:`acquire` before, :meth:`publish` at the end, :meth:`release`
+    always (``with ResultFolder(out) as folder:`` does the first and the last)."""
 
     def __init__(self, out: Path | str):
         self.out = Path(out)
@@ -101,6 +103,13 @@ class ResultFolder:
         if status in COMPLETE_STATUSES:
             return self.out
         return self.out.with_name(f"{self.out.name}.{status}")
+
+    def __enter__(self) -> "ResultFolder":
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
     # -- before the run ------------------------------------------------------------------------
     def acquire(self) -> None:
@@ -225,7 +234,7 @@ class ResultFolder:
         if self._lock_fd is None:
             return
         fd, self._lock_fd = self._lock_fd, None
-        with _suppress_oserror():
+        with contextlib.suppress(OSError):
             os.unlink(self.lock_path)  # while still holding it: see _lock
         os.close(fd)
         if self.published is None and self.staging.exists():
@@ -241,11 +250,3 @@ def _read_pid(fd: int) -> int | None:
         return int(text) if text else None
     except (OSError, ValueError):
         return None
-
-
-class _suppress_oserror:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, value, tb):
-        return kind is not None and issubclass(kind, OSError)

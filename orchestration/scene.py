@@ -378,6 +378,18 @@ def _list(value, where: str, problems: list[str], fix: str) -> list:
     return []
 
 
+def _each_table(items: list, where: str, keys, problems: list[str], shape: str):
+    """``(where[i], item)`` for each table in ``items``; a problem for each item that is not a
+    table (it is skipped) and for each unknown key."""
+    for i, item in enumerate(items):
+        at = f"{where}[{i}]"
+        if not isinstance(item, dict):
+            problems.append(f"{at}: must be a table {shape}")
+            continue
+        _unknown_keys(item, keys, at, problems)
+        yield at, item
+
+
 def _short(value) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
@@ -1013,21 +1025,12 @@ def _plot_ok(index: int, figure, components: dict, problems: list[str], declared
     if not isinstance(panels, list) or not panels:
         problems.append(f"{where} panels: must be a non-empty list of {{ ylabel, series = [...] }}")
         panels = []
-    for p, panel in enumerate(panels):
-        at = f"{where} panels[{p}]"
-        if not isinstance(panel, dict):
-            problems.append(f"{at}: must be a table {{ ylabel, series = [...] }}")
-            continue
-        _unknown_keys(panel, _PANEL_KEYS, at, problems)
+    for at, panel in _each_table(panels, f"{where} panels", _PANEL_KEYS, problems, "{ ylabel, series = [...] }"):
         if not isinstance(panel.get("ylabel", ""), str):
             problems.append(f"{at} ylabel: must be a string")
         series_list = _list(panel.get("series", []), f"{at} series", problems, "of { stream, column, label }")
-        for k, series in enumerate(series_list):
-            at_series = f"{at} series[{k}]"
-            if not isinstance(series, dict):
-                problems.append(f"{at_series}: must be a table {{ stream, column, label }}")
-                continue
-            _unknown_keys(series, _SERIES_KEYS, at_series, problems)
+        for at_series, series in _each_table(series_list, f"{at} series", _SERIES_KEYS, problems,
+                                             "{ stream, column, label }"):
             stream, column = series.get("stream"), series.get("column")
             if not isinstance(stream, str) or (stream not in components and stream not in declared):
                 problems.append(f"{at_series} stream: {_short(stream)} is not a component of the scene")

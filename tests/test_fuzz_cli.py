@@ -95,12 +95,18 @@ def scene_args(workdir: Path):
                             str(workdir / "escape.toml"), "", "../scenes/virtual_wall", str(workdir / "missing.toml")])
 
 
-def assert_outcome(code, out: str, err: str) -> None:
+def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    """Run the command line in this process; (exit code, stdout, stderr) once the outcome every
+    case must have is checked: no traceback, a documented exit code, a usage error that says so."""
+    note(repr(argv))
+    code = cli.main(argv)
+    out, err = capsys.readouterr()
     event(f"exit {code}")  # the spread of outcomes, shown by --hypothesis-show-statistics
     assert "Traceback" not in err and "Traceback" not in out, err
     assert code in (cli.EXIT_OK, cli.EXIT_FAILED, cli.EXIT_USAGE), code
     if code == cli.EXIT_USAGE:
         assert "error: " in err, err  # argparse: "prog: error: ...", ours: "error: ..."
+    return code, out, err
 
 
 # -- validate ----------------------------------------------------------------------------------------
@@ -116,10 +122,7 @@ def test_validate_with_random_arguments(workdir, capsys, data):
         argv += ["--set", item]
     if not clean and data.draw(st.integers(0, 4)) == 0:
         argv.append(data.draw(UNKNOWN))
-    note(repr(argv))
-    code = cli.main(argv)
-    out, err = capsys.readouterr()
-    assert_outcome(code, out, err)
+    code, out, err = run_cli(argv, capsys)
     assert code != cli.EXIT_FAILED  # validate runs nothing
     if code == cli.EXIT_OK:
         assert out.splitlines()[0].endswith(": OK")
@@ -160,10 +163,7 @@ def test_run_with_random_arguments_exits_0_only_with_a_completed_run_in_out(work
         argv += ["--out", str(out_dir)]
     if not clean and data.draw(st.integers(0, 5)) == 0:
         argv.append(data.draw(UNKNOWN))
-    note(repr(argv))
-    code = cli.main(argv)
-    out, err = capsys.readouterr()
-    assert_outcome(code, out, err)
+    code, out, err = run_cli(argv, capsys)
     if clean:
         assert code == cli.EXIT_OK, err  # a well-formed short run of the shipped scene completes
     if code == cli.EXIT_OK:
@@ -220,10 +220,7 @@ def test_study_with_random_arguments(workdir, capsys, study_stub, data):
             argv.append(flag)
     if not clean and data.draw(st.integers(0, 4)) == 0:
         argv.append(data.draw(UNKNOWN))
-    note(repr(argv))
-    code = cli.main(argv)
-    out, err = capsys.readouterr()
-    assert_outcome(code, out, err)
+    code, out, err = run_cli(argv, capsys)
     if clean:
         assert code == cli.EXIT_OK, err
     if code == cli.EXIT_OK:
