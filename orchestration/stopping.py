@@ -41,6 +41,7 @@ class StopRequest:
         self.reason: str | None = None
         self.count = 0
         self._listeners: list[Callable[["StopRequest"], None]] = []
+        self._previous: dict = {}  # the handlers install() replaced
 
     @property
     def requested(self) -> bool:
@@ -138,25 +139,19 @@ def stop_signals() -> Iterator[StopRequest]:
     again once the previous handlers are back: a program calling ``run_scene`` (a study's loop)
     still gets its ``KeyboardInterrupt``, but only after the run's results and summary are written.
     """
-    global _active
     if _active is not None:
         yield _active
         return
     if threading.current_thread() is not threading.main_thread():
         yield StopRequest()
         return
-    request = StopRequest()
-    previous = _take_over(request)
-    _active = request
+    request = install()
     try:
         yield request
     finally:
-        _active = None
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         if request.requested:
             logger.debug("run stopped: %s (%d signal(s)); delivering it to the caller", request.reason, request.count)
-            signal.raise_signal(request.signum)
+        uninstall()
 
 
 def start_shielded(process) -> None:

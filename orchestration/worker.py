@@ -44,7 +44,6 @@ from .stopping import STOP_SIGNALS, start_shielded
 
 logger = logging.getLogger(__name__)
 
-
 #: While waiting for a reply, how often the master checks that the worker is still alive (ms).
 _LIVENESS_INTERVAL_MS = 500
 #: How long terminate() waits for the worker to shut down cleanly before killing it (s).

@@ -61,6 +61,7 @@ MAX_ARRAY_BYTES = 1 << 30
 
 #: The step exchange with fmi3DoStep: t, h, internal steps (in); status, internal steps completed (out).
 IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED = range(5)
+STEP_IO_SIZE = 5  # as the C layer's enum (fmi3Functions.c), which checks the size it is given
 
 _REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
                              ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p, ctypes.c_double,
@@ -328,7 +329,7 @@ class RuntimeInstance:
         self.set_counts = np.zeros(len(self.variables), dtype=np.uint64)
         self.set_count_view = memoryview(self.set_counts)  # plain ints, read by Values.set_count
         counters(self._c, self.set_counts.ctypes.data, len(self.variables))
-        self._step_io = np.zeros(5)
+        self._step_io = np.zeros(STEP_IO_SIZE)
         self._io = memoryview(self._step_io)
         if step_io(self._c, self._step_io.ctypes.data, self._step_io.size) != 0:
             raise MemoryError("the FMI layer did not take the step exchange")
