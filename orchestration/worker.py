@@ -32,6 +32,7 @@ import logging
 import multiprocessing
 import select
 import signal
+import sys
 import time
 from multiprocessing.shared_memory import SharedMemory
 
@@ -58,6 +59,8 @@ _RECENT_WINDOW = 256
 #: The allowance for the first calls (instantiation, initialization), which may load a model
 #: and compile its kernels (about a minute here with an empty numba cache).
 SETUP_TIMEOUT = 600.0
+#: The call named in errors until the worker holds the FMU's description.
+START_CALL = "start worker"
 
 
 class Command:
@@ -96,7 +99,9 @@ class Command:
 
 class Reply:
     """Worker -> master messages: ``(kind, payload, messages)``, ``messages`` the FMU's log since the
-    previous reply as ``((status, text), ...)``. The worker first sends ``(OK, None, ())`` once it runs."""
+    previous reply as ``((status, text), ...)``. The worker first sends ``(OK, None, ())`` once it
+    runs; the master then sends the FMU's description (no command tuple: it comes once, first),
+    answered by OK once the worker holds it."""
 
     OK = "ok"        # payload: the command's result
     RAISE = "raise"  # payload: the exception, raised in the master
@@ -154,15 +159,20 @@ class WorkerFmu:
             raise RuntimeError(f"{self.name}: instantiate() after terminate()")
         context = multiprocessing.get_context("spawn")
         parent_end, child_end = context.Pipe(duplex=True)
-        # The FMPy model description object stays here: the worker needs only the ports.
-        description = dataclasses.replace(self.description, model_description=None)
-        self._process = context.Process(target=_worker_main, args=(child_end, self.name, description),
+        # Only small arguments go with the spawn: start() writes them into a pipe whose reading
+        # end this process holds too, so a child that dies before reading them all (a script
+        # that starts a run when imported) would block it forever. The description (its ports'
+        # start values: 80 KB for Tissue) follows once the worker answers.
+        self._process = context.Process(target=_worker_main, args=(child_end, self.name),
                                         name=f"fmu-worker-{self.name}", daemon=True)
         start_shielded(self._process)  # _worker_main ignores SIGINT, then unblocks
         child_end.close()  # so that the worker's death reads as end-of-file here
         self._conn = parent_end
         self._sent_at = time.monotonic()
-        self._receive("start worker", timeout=self.start_timeout)
+        self._receive(START_CALL, timeout=self.start_timeout)
+        # The FMPy model description object stays here: the worker needs only the ports.
+        description = dataclasses.replace(self.description, model_description=None)
+        self._call(START_CALL, description)
         self._call("fmi3InstantiateCoSimulation", (Command.INSTANTIATE,))
 
     def set_values(self, values: dict[str, object]) -> None:
@@ -406,6 +416,8 @@ class WorkerFmu:
                 exitcode = process.exitcode
             pid = process.pid if process is not None else "?"
             self._crash_reason = f"the worker process (pid {pid}) died: {exit_description(exitcode)}"
+            if call == START_CALL:
+                self._crash_reason += _start_up_hint()
         return WorkerCrash(self.name, call, self._time, self._crash_reason)
 
     def _require_worker(self, call: str) -> None:
@@ -448,14 +460,29 @@ class _WorkerState:
             self.shm = None
 
 
-def _worker_main(conn, name: str, description: FmuDescription) -> None:
-    """Serve commands until TERMINATE or until the master goes away."""
+def _start_up_hint() -> str:
+    """Why a worker dies before it answers, when the cause is the usual one (see its traceback)."""
+    main = getattr(sys.modules.get("__main__"), "__file__", None)
+    if main is None:
+        return ""
+    return (f" (its traceback is on stderr). A worker process starts by importing the main script, "
+            f"{main}: if that script starts a run when it is imported, put that code under "
+            f'if __name__ == "__main__":')
+
+
+def _worker_main(conn, name: str) -> None:
+    """Take the FMU's description, then serve commands until TERMINATE or until the master goes away."""
     # Ctrl-C in the terminal reaches the whole process group: the master handles it and shuts
     # the worker down, so the worker must not die of it first. Both signals were blocked since
     # before the spawn (see instantiate): ignore SIGINT, then unblock, which discards a pending
     # SIGINT (a pending SIGTERM ends the worker now, as it would have during start-up).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    conn.send((Reply.OK, None, ()))
+    try:
+        description = conn.recv()
+    except (EOFError, OSError):  # the master is gone
+        return
     state = _WorkerState(name, description)
     host = state.host
 
@@ -476,7 +503,7 @@ def _worker_main(conn, name: str, description: FmuDescription) -> None:
         Command.SET_INPUTS: push,
         Command.GET_OUTPUTS: pull,
     }
-    conn.send((Reply.OK, None, ()))
+    _reply(conn, Reply.OK, None, host)
     while True:
         try:
             message = conn.recv()

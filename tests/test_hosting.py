@@ -10,6 +10,9 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -306,3 +309,32 @@ def test_building_an_fmu_does_not_break_instances_loaded_in_this_process(contact
     rebuilt = build_fmu("Contact", tmp_path)
     np.testing.assert_array_equal(one_instance(rebuilt), np.zeros(3))
     np.testing.assert_array_equal(one_instance(contact_fmu), np.zeros(3))
+
+
+def test_a_worker_that_dies_at_start_up_is_reported_not_waited_for(tissue_fmu, tmp_path):
+    """A worker process starts by importing the main script. A script that starts a run when
+    imported (no ``if __name__ == "__main__":``) makes the worker die at start-up; the master
+    must report that with the fix, not hang. The Tissue FMU's description (its ports' start
+    values) is larger than a pipe's buffer: handing it to the starting process blocked forever."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(textwrap.dedent(f"""
+        from orchestration.ports import read_fmu
+        from orchestration.worker import WorkerFmu
+
+        host = WorkerFmu("tissue", read_fmu({str(tissue_fmu)!r}))
+        try:
+            host.instantiate()
+        except Exception as exc:
+            if __name__ != "__main__":  # in the worker: dies of it, as any unguarded script does
+                raise
+            print("REPORTED:", exc)
+        finally:
+            host.terminate()
+        print("DONE")
+    """))
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    out = result.stdout
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert out.count("DONE") == 1, out  # the worker never ran the script to its end
+    assert "REPORTED: tissue: start worker" in out and "died" in out, out
+    assert 'if __name__ == "__main__":' in out, out
