@@ -85,7 +85,7 @@ class Route:
     parameter: bool = False                 # set once, at initialization
     producer: "Component | None" = None     # stepped producer
     source: object = None                   # continuous source (evaluate(t))
-    history: tr.SampleHistory | None = None
+    history: tr.SampleHistory | tr.WindowSums | None = None
     transition: tr.Transition | None = None
     need_offset: int = 0                    # tau - t: 0 for jacobi, the consumer's step for gauss-seidel
     last_key: object = None
@@ -111,7 +111,7 @@ class Component:
     started_at: float = 0.0
     routes: list[Route] = field(default_factory=list)
     observed: list[str] = field(default_factory=list)
-    histories: dict[str, list[tr.SampleHistory]] = field(default_factory=dict)  # per port: one copy for all
+    histories: dict[str, list] = field(default_factory=dict)  # per port: its consumers' histories
     consumers: list[tuple["Component", Route]] = field(default_factory=list)
     listeners: list[Callable] = field(default_factory=list)     # observers' stepped(comp, tick, outputs)
     pre_step: list[Callable] = field(default_factory=list)      # observers' before_step(comp, tick)
@@ -225,8 +225,8 @@ class MultirateAlgorithm:
                 producer = self.components[conn.source]
                 route.producer = producer
                 if not is_parameter:
-                    route.history = tr.SampleHistory(producer.step)
-                    route.transition = tr.REGISTRY[conn.transition or tr.DEFAULT](route.history, target.step)
+                    route.transition = tr.REGISTRY[conn.transition or tr.DEFAULT](producer.step, target.step)
+                    route.history = route.transition.history
                     producer.histories.setdefault(conn.source_port, []).append(route.history)
                     producer.consumers.append((target, route))
                     _add(producer.observed, conn.source_port)
@@ -363,9 +363,15 @@ class MultirateAlgorithm:
         """Keep what consumers will read (copies: a host's outputs are valid until its next step)."""
         comp.outputs = outputs
         for port, histories in comp.histories.items():
-            sample = outputs[port].copy()  # shared by every consumer's history: nobody writes to it
+            value = outputs[port]
+            sample = None  # one copy shared by the histories that keep it: nobody writes to it
             for history in histories:
-                history.append(tick, sample)
+                if history.keeps_values:
+                    if sample is None:
+                        sample = value.copy()
+                    history.append(tick, sample)
+                else:
+                    history.append(tick, value)
         for listener in comp.listeners:
             listener(comp, tick, outputs)
         # Drop samples no consumer can still ask for.

@@ -11,7 +11,13 @@ depends on the connection's ordering; see ``master``) through one of
 * ``extrapolate``: first order from the latest two samples, ``y_k + (tau - t_k) (y_k - y_k-1) / H``;
 * ``average``: the mean of the producer's samples in ``(tau - h, tau]`` (``h`` the consumer's
   step), e.g. the 1 kHz contact forces over one 30 Hz tissue step. With 1 ms and 1/30 s the
-  windows hold 33 or 34 samples, counted exactly.
+  windows hold 33 or 34 samples, counted exactly. The sums are kept as the samples arrive
+  (:class:`WindowSums`), bit for bit the sum :func:`average` forms: the consumer's step then
+  finds its mean ready instead of summing 33 cold 64 KB samples at a 30 Hz frame (185 us the
+  contact forces, each frame, in the 1 kHz loop).
+
+Each transition keeps the samples it needs in a history of its own kind (``history``): the
+master hands each sample to it, copied first if the history ``keeps_values``.
 
 Before a producer has two samples, interpolate and extrapolate hold the first one.
 """
@@ -26,6 +32,8 @@ class SampleHistory:
     """The samples ``(tick, value)`` of one producer port, oldest first, pruned as consumers advance."""
 
     __slots__ = ("step", "ticks", "values", "count")
+    #: ``append`` keeps the array it is given (the master hands it a copy)
+    keeps_values = True
 
     def __init__(self, step: int):
         self.step = int(step)
@@ -53,6 +61,51 @@ class SampleHistory:
         while i >= 0 and ticks[i] > tau:
             i -= 1
         return i
+
+
+class WindowSums:
+    """The running sums of a producer port's samples over the windows ``(k W - W, k W]`` of a
+    consumer whose step is ``W`` ticks (where its evaluation ticks fall): what ``average`` needs,
+    without keeping the samples. A window's sum starts as a copy of its first sample and adds the
+    others in time order, as :func:`average` does, so the means are bitwise the same.
+    """
+
+    __slots__ = ("step", "window", "ticks", "count", "_sums")
+    keeps_values = False  # append reads the array at once and keeps none of it
+
+    def __init__(self, step: int, window: int):
+        self.step = int(step)
+        self.window = int(window)
+        self.ticks: deque[int] = deque(maxlen=2)  # the latest ticks (the master asks for the last)
+        self.count = 0
+        self._sums: dict[int, list] = {}  # window end tick -> [sum array, number of samples]
+
+    def append(self, tick: int, value: np.ndarray) -> None:
+        if self.ticks and tick <= self.ticks[-1]:
+            raise ValueError(f"samples must arrive in time order (tick {tick} after {self.ticks[-1]})")
+        end = -(-tick // self.window) * self.window
+        entry = self._sums.get(end)
+        if entry is None:
+            self._sums[end] = [np.array(value, dtype=np.float64, copy=True), 1]
+        else:
+            np.add(entry[0], value, out=entry[0])
+            entry[1] += 1
+        self.ticks.append(int(tick))
+        self.count += 1
+
+    def prune(self, keep_from: int) -> None:
+        """Drop the windows that end before ``keep_from``."""
+        for end in [e for e in self._sums if e < keep_from]:
+            del self._sums[end]
+
+    def mean(self, tau: int) -> np.ndarray:
+        """Mean of the samples with tick in ``(tau - window, tau]`` (a new array)."""
+        if tau % self.window:
+            raise ValueError(f"tick {tau} is not the end of a window of {self.window} ticks")
+        entry = self._sums.get(tau)
+        if entry is None:  # the scene checks make the producer at least as fast as the window
+            raise LookupError(f"no sample in the window ({tau - self.window}, {tau}]")
+        return np.divide(entry[0], entry[1])
 
 
 def hold(history: SampleHistory, tau: int) -> tuple[np.ndarray, int]:
@@ -123,9 +176,14 @@ class Transition:
     summary: str = ""
     keyed: bool = False
 
-    def __init__(self, history: SampleHistory, consumer_step: int):
-        self.history = history
+    def __init__(self, producer_step: int, consumer_step: int):
         self.consumer_step = int(consumer_step)
+        self.history = self.new_history(int(producer_step), self.consumer_step)
+
+    @staticmethod
+    def new_history(producer_step: int, consumer_step: int):
+        """The history this transition reads (what the master appends the producer's samples to)."""
+        return SampleHistory(producer_step)
 
     def value(self, tau: int) -> tuple[np.ndarray, int | None]:
         raise NotImplementedError
@@ -160,8 +218,12 @@ class Extrapolate(Transition):
 class Average(Transition):
     name, summary = "average", "the mean of the samples within the consumer's step"
 
+    @staticmethod
+    def new_history(producer_step, consumer_step):
+        return WindowSums(producer_step, consumer_step)
+
     def value(self, tau):
-        return average(self.history, tau, self.consumer_step), None
+        return self.history.mean(tau), None
 
     @classmethod
     def scene_problem(cls, producer_step, consumer_step):

@@ -77,6 +77,37 @@ def test_average_of_vectors_is_componentwise():
     np.testing.assert_array_equal(tr.average(h, 9, 4), [7.5, -15.0, 1.0])
 
 
+def test_the_running_window_sums_give_average_bit_for_bit():
+    """The Average transition sums as samples arrive (WindowSums); its means must be the reference
+    average's, bitwise, for 1 kHz vectors into 30 Hz windows (33 or 34 samples), with the master's
+    pruning in between and each window read at its end, as a jacobi and a gauss-seidel consumer do."""
+    rng = np.random.default_rng(7)
+    reference = tr.SampleHistory(3)
+    transition = tr.REGISTRY["average"](3, 100)
+    sums = transition.history
+    assert isinstance(sums, tr.WindowSums) and not sums.keeps_values
+    checked = 0
+    for k in range(1000):
+        sample = rng.normal(scale=rng.uniform(1e-3, 1e3), size=8064)
+        reference.append(3 * k, sample.copy())
+        sums.append(3 * k, sample)
+        sample[:] = np.nan  # the host's buffer is overwritten by its next step: nothing may keep it
+        tau = (3 * k // 100) * 100  # the latest window every sample of which has arrived
+        if tau > 0 and 3 * k - 3 < tau <= 3 * k:
+            expected = tr.average(reference, tau, 100)
+            got = transition.value(tau)[0]
+            assert got.tobytes() == expected.tobytes()
+            assert transition.value(tau)[0].tobytes() == expected.tobytes()  # asking again changes nothing
+            checked += 1
+        sums.prune(3 * k - 2 * 3 - 100)
+        reference.prune(3 * k - 2 * 3 - 100)
+    assert checked == 29
+    with pytest.raises(ValueError, match="not the end of a window"):
+        transition.value(150)
+    with pytest.raises(LookupError, match="no sample"):
+        transition.value(100)  # pruned long ago
+
+
 def test_prune_keeps_what_consumers_can_still_ask_for():
     h = history_of(linear, 3, 50)
     h.prune(100)
