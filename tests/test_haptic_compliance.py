@@ -328,6 +328,32 @@ def test_patch_names_contact_face_first_ascending_and_padded():
 
 
 # ---------------------------------------------------------------------------- validation
+@pytest.mark.parametrize("lowest_in_shifts", [-3.0, -1.5, -0.7, -0.2, 0.0, 0.5])
+def test_the_psd_check_decides_as_the_smallest_eigenvalue_does(lowest_in_shifts):
+    """W's check takes a Cholesky factor of W + shift I instead of its eigenvalues; around the
+    tolerance (shift = PSD_TOLERANCE x largest entry x size) it must accept and refuse exactly
+    the matrices the smallest eigenvalue accepts and refuses."""
+    from haptic_fmu.rendering import PSD_TOLERANCE, ComplianceError, check_compliance
+
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(12, 12)))
+    eigenvalues = np.linspace(1e-4, 1e-3, 12)
+    shift = PSD_TOLERANCE * 1e-3 * 12  # the largest entry is about 1e-3 m/N
+    for _ in range(2):  # the largest entry moves with the eigenvalue set: settle the shift
+        eigenvalues[0] = lowest_in_shifts * shift
+        w = (q * eigenvalues) @ q.T
+        w = 0.5 * (w + w.T)
+        shift = PSD_TOLERANCE * float(np.abs(w).max()) * 12
+    lowest = float(np.linalg.eigvalsh(w)[0])
+    ids = np.arange(4)
+    if lowest < -shift:
+        with pytest.raises(ComplianceError, match="positive semi-definite"):
+            check_compliance(w, ids, 100, 16)
+    else:
+        _, accepted, _ = check_compliance(w, ids, 100, 16)
+        np.testing.assert_array_equal(accepted, w)
+
+
 @pytest.mark.parametrize("case, match", [
     ("shape", "compliance must be a"), ("nan", "NaN"), ("asymmetric", "not symmetric"),
     ("indefinite", "positive semi-definite"), ("duplicate", "repeats"), ("range", "surface node ids"),
