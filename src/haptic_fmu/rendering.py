@@ -199,7 +199,7 @@ def check_compliance(compliance, nodes, n_surface, max_nodes):
     w = 0.5 * (w + w.T)
     if scale > 0.0:
         # Smallest eigenvalue >= -shift exactly when W + shift I has a Cholesky factor (up to its
-        # round-off): 19 us for a 48 x 48 W, where eigvalsh takes 92 us of each tissue frame's
+        # round-off): 19 us for a 48 x 48 W, where eigvalsh takes 97 us of each tissue frame's
         # intake in the 1 kHz loop. eigvalsh decides, and measures, only where the factor fails.
         shift = PSD_TOLERANCE * scale * w.shape[0]
         try:
