@@ -380,6 +380,10 @@ def test_a_library_run_stops_cleanly_on_sigint_then_hands_the_keyboardinterrupt_
     from orchestration.master import run_scene
     from orchestration.scene import load_scene
 
+    # The premise: a program with Python's own Ctrl-C handling. A background job of a
+    # non-interactive shell (CI started with `&`) inherits SIGINT ignored, and a run rightly
+    # leaves an ignored signal ignored (see stopping._take_over).
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
     before = signal.getsignal(signal.SIGINT)
     done = threading.Event()
 
@@ -400,9 +404,10 @@ def test_a_library_run_stops_cleanly_on_sigint_then_hands_the_keyboardinterrupt_
     finally:
         done.set()
         thread.join()
+        after = signal.signal(signal.SIGINT, inherited)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["status"] == "interrupted", summary["error"]
     assert summary["error"] == summary["stop_request"] == "interrupted by Ctrl-C (SIGINT)"
     assert 0.2 <= summary["simulated_time_s"] < 60
-    assert signal.getsignal(signal.SIGINT) is before       # the run's handler is gone again
+    assert after is before       # the run's handler is gone again
     check_results(tmp_path, summary)
