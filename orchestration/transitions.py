@@ -12,9 +12,8 @@ depends on the connection's ordering; see ``master``) through one of
 * ``average``: the mean of the producer's samples in ``(tau - h, tau]`` (``h`` the consumer's
   step), e.g. the 1 kHz contact forces over one 30 Hz tissue step. With 1 ms and 1/30 s the
   windows hold 33 or 34 samples, counted exactly. The sums are kept as the samples arrive
-  (:class:`WindowSums`), bit for bit the sum :func:`average` forms: the consumer's step then
-  finds its mean ready instead of summing 33 cold 64 KB samples at a 30 Hz frame (185 us the
-  contact forces, each frame, in the 1 kHz loop).
+  (:class:`WindowSums`): the consumer's step finds its mean ready instead of summing 33 cold
+  64 KB samples at a 30 Hz frame (185 us for the contact forces, each frame, in the 1 kHz loop).
 
 Each transition keeps the samples it needs in a history of its own kind (``history``): the
 master hands each sample to it, copied first if the history ``keeps_values``.
@@ -26,6 +25,11 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+
+
+def _check_order(ticks, tick: int) -> None:
+    if ticks and tick <= ticks[-1]:
+        raise ValueError(f"samples must arrive in time order (tick {tick} after {ticks[-1]})")
 
 
 class SampleHistory:
@@ -42,8 +46,7 @@ class SampleHistory:
         self.count = 0  # samples appended so far (a consumer can tell that nothing new arrived)
 
     def append(self, tick: int, value: np.ndarray) -> None:
-        if self.ticks and tick <= self.ticks[-1]:
-            raise ValueError(f"samples must arrive in time order (tick {tick} after {self.ticks[-1]})")
+        _check_order(self.ticks, tick)
         self.ticks.append(int(tick))
         self.values.append(value)
         self.count += 1
@@ -67,7 +70,8 @@ class WindowSums:
     """The running sums of a producer port's samples over the windows ``(k W - W, k W]`` of a
     consumer whose step is ``W`` ticks (where its evaluation ticks fall): what ``average`` needs,
     without keeping the samples. A window's sum starts as a copy of its first sample and adds the
-    others in time order, as :func:`average` does, so the means are bitwise the same.
+    others in time order, then is divided by their number (tested bitwise against summing the
+    kept samples).
     """
 
     __slots__ = ("step", "window", "ticks", "count", "_sums")
@@ -81,8 +85,7 @@ class WindowSums:
         self._sums: dict[int, list] = {}  # window end tick -> [sum array, number of samples]
 
     def append(self, tick: int, value: np.ndarray) -> None:
-        if self.ticks and tick <= self.ticks[-1]:
-            raise ValueError(f"samples must arrive in time order (tick {tick} after {self.ticks[-1]})")
+        _check_order(self.ticks, tick)
         end = -(-tick // self.window) * self.window
         entry = self._sums.get(end)
         if entry is None:
@@ -94,9 +97,13 @@ class WindowSums:
         self.count += 1
 
     def prune(self, keep_from: int) -> None:
-        """Drop the windows that end before ``keep_from``."""
-        for end in [e for e in self._sums if e < keep_from]:
-            del self._sums[end]
+        """Drop the windows that end before ``keep_from`` (the dict holds them oldest first)."""
+        sums = self._sums
+        while sums:
+            oldest = next(iter(sums))
+            if oldest >= keep_from:
+                break
+            del sums[oldest]
 
     def mean(self, tau: int) -> np.ndarray:
         """Mean of the samples with tick in ``(tau - window, tau]`` (a new array)."""
@@ -143,24 +150,6 @@ def extrapolate(history: SampleHistory, tau: int) -> np.ndarray:
     if tau == t1:
         return y1
     return y1 + ((tau - t1) / (t1 - t0)) * (y1 - y0)
-
-
-def average(history: SampleHistory, tau: int, window: int) -> np.ndarray:
-    """Mean of the samples with tick in ``(tau - window, tau]``; the latest sample if there is none."""
-    ticks = history.ticks
-    i = history.latest_index(tau)
-    if i < 0:
-        raise LookupError(f"no sample at or before tick {tau}")
-    j = i
-    while j - 1 >= 0 and ticks[j - 1] > tau - window:
-        j -= 1
-    if ticks[j] <= tau - window:  # no sample inside the window: the producer is slower
-        return history.values[i]
-    total = history.values[j].copy()
-    for k in range(j + 1, i + 1):
-        total += history.values[k]
-    total /= (i - j + 1)
-    return total
 
 
 # -- the registry: one class per transition, used by the scene checks and by the master -----------

@@ -322,12 +322,12 @@ class WorkerFmu:
             logger.warning("%s: unlinking shared memory %s failed: %s", self.name, shm.name, exc)
 
     # -- messaging ---------------------------------------------------------------------------------
-    def _call(self, call: str, message: tuple):
+    def _call(self, call: str, message):
         self._require_idle(call)
         self._send(call, message)
         return self._receive(call)
 
-    def _send(self, call: str, message: tuple) -> None:
+    def _send(self, call: str, message) -> None:
         self._require_worker(call)
         try:
             self._conn.send(message)

@@ -55,32 +55,48 @@ def test_extrapolate_is_exact_for_a_linear_signal_and_first_order_otherwise():
     assert tr.extrapolate(single, 3)[0] == linear(0)
 
 
+def reference_average(history: tr.SampleHistory, tau: int, window: int) -> np.ndarray:
+    """The plain definition: the kept samples with tick in ``(tau - window, tau]``, summed in time
+    order from a copy of the first, divided by their number."""
+    inside = [v for t, v in zip(history.ticks, history.values) if tau - window < t <= tau]
+    total = inside[0].copy()
+    for value in inside[1:]:
+        total += value
+    total /= len(inside)
+    return total
+
+
+def average_of(samples, producer_step: int, window: int):
+    """The Average transition fed with ``samples`` [(tick, array)], as the master feeds it."""
+    transition = tr.REGISTRY["average"](producer_step, window)
+    for tick, value in samples:
+        transition.history.append(tick, value)
+    return transition
+
+
 def test_average_over_one_30hz_step_of_1khz_samples_counts_33_or_34():
     # ticks of 1/3000 s: haptic samples every 3 ticks, tissue steps of 100 ticks
-    h = tr.SampleHistory(3)
-    for k in range(0, 400):
-        h.append(3 * k, np.array([float(k * k)]))
+    transition = average_of([(3 * k, np.array([float(k * k)])) for k in range(400)], 3, 100)
     counts = []
     for frame in range(1, 4):
         tau = 100 * frame
         inside = [k for k in range(400) if tau - 100 < 3 * k <= tau]
         counts.append(len(inside))
         expected = Fraction(sum(k * k for k in inside), len(inside))
-        assert tr.average(h, tau, 100)[0] == float(expected)
+        assert transition.value(tau)[0][0] == float(expected)
     assert counts == [33, 33, 34]
 
 
 def test_average_of_vectors_is_componentwise():
-    h = tr.SampleHistory(1)
-    for k in range(10):
-        h.append(k, np.array([k, -2.0 * k, 1.0]))
-    np.testing.assert_array_equal(tr.average(h, 9, 4), [7.5, -15.0, 1.0])
+    transition = average_of([(k, np.array([k, -2.0 * k, 1.0])) for k in range(10)], 1, 4)
+    np.testing.assert_array_equal(transition.value(8)[0], [6.5, -13.0, 1.0])  # samples 5..8
 
 
-def test_the_running_window_sums_give_average_bit_for_bit():
-    """The Average transition sums as samples arrive (WindowSums); its means must be the reference
-    average's, bitwise, for 1 kHz vectors into 30 Hz windows (33 or 34 samples), with the master's
-    pruning in between and each window read at its end, as a jacobi and a gauss-seidel consumer do."""
+def test_the_running_window_sums_give_the_plain_average_bit_for_bit():
+    """The Average transition sums as samples arrive (WindowSums); its means must be the plain
+    definition's, bitwise, for 1 kHz vectors into 30 Hz windows (33 or 34 samples), with the
+    master's pruning in between and each window read at its end, as a jacobi and a gauss-seidel
+    consumer do."""
     rng = np.random.default_rng(7)
     reference = tr.SampleHistory(3)
     transition = tr.REGISTRY["average"](3, 100)
@@ -94,7 +110,7 @@ def test_the_running_window_sums_give_average_bit_for_bit():
         sample[:] = np.nan  # the host's buffer is overwritten by its next step: nothing may keep it
         tau = (3 * k // 100) * 100  # the latest window every sample of which has arrived
         if tau > 0 and 3 * k - 3 < tau <= 3 * k:
-            expected = tr.average(reference, tau, 100)
+            expected = reference_average(reference, tau, 100)
             got = transition.value(tau)[0]
             assert got.tobytes() == expected.tobytes()
             assert transition.value(tau)[0].tobytes() == expected.tobytes()  # asking again changes nothing
@@ -106,6 +122,8 @@ def test_the_running_window_sums_give_average_bit_for_bit():
         transition.value(150)
     with pytest.raises(LookupError, match="no sample"):
         transition.value(100)  # pruned long ago
+    with pytest.raises(ValueError, match="time order"):
+        sums.append(3 * 999, np.zeros(8064))
 
 
 def test_prune_keeps_what_consumers_can_still_ask_for():
