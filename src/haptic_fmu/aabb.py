@@ -202,9 +202,13 @@ class AABBTree:
     def n_primitives(self):
         return self.lo.shape[0]
 
-    def refit(self, lo, hi):
-        """New boxes for the same primitives (same topology), bottom-up in O(m)."""
-        lo, hi = _boxes_pair(lo, hi, "AABBTree.refit")
+    def refit(self, lo, hi, check=True):
+        """New boxes for the same primitives (same topology), bottom-up in O(m).
+
+        check=False skips the validation for boxes the caller made from validated positions
+        (the contact model's, at every tissue frame): (m, 3) float64 with finite lo <= hi."""
+        if check:
+            lo, hi = _boxes_pair(lo, hi, "AABBTree.refit")
         if lo.shape[0] != self.n_primitives:
             raise AABBInputError(f"AABBTree.refit got {lo.shape[0]} boxes but the tree has {self.n_primitives}: "
                                  f"refit needs the same primitives; build a new tree if the mesh changed")
@@ -229,9 +233,12 @@ class AABBTree:
 
         return _collect(run, 4 * (self.n_primitives + other.n_primitives))
 
-    def query_boxes(self, lo, hi):
-        """(k, 2) int64 pairs (i primitive of self, j query box) whose boxes overlap, sorted."""
-        lo, hi = _boxes_pair(lo, hi, "AABBTree.query_boxes")
+    def query_boxes(self, lo, hi, check=True):
+        """(k, 2) int64 pairs (i primitive of self, j query box) whose boxes overlap, sorted.
+
+        check=False: as for `refit`, and lo, hi C-contiguous."""
+        if check:
+            lo, hi = _boxes_pair(lo, hi, "AABBTree.query_boxes")
         if self.n_primitives == 0 or lo.shape[0] == 0:
             return np.empty((0, 2), dtype=np.int64)
 
@@ -239,4 +246,6 @@ class AABBTree:
             return aabb_kernels.query_tree_boxes(self.lo, self.hi, self.order, self.node_lo, self.node_hi,
                                                  self.left, self.right, self.start, self.count, lo, hi, out)
 
-        return _collect(run, 4 * (self.n_primitives + lo.shape[0]))
+        # A few boxes (a tool's) meet a few primitives each: a buffer sized by the query, not by
+        # the tree (a tree-sized one costs more to allocate than the query itself); grown if short.
+        return _collect(run, 16 * lo.shape[0] + 64)

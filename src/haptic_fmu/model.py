@@ -347,7 +347,7 @@ class ContactModel:
             self.tree = aabb.AABBTree.build(self._box_lo, self._box_hi)
             logger.debug("AABB tree built over %d surface triangles", self.triangles.shape[0])
         else:
-            self.tree.refit(self._box_lo, self._box_hi)
+            self.tree.refit(self._box_lo, self._box_hi, check=False)
         previous = (self._frame_t, self._frame_pos, self._frame_vel)
         self._frame_t, self._frame_pos, self._frame_vel = float(t), pos, vel
         if self.compliance is not None:
@@ -408,18 +408,20 @@ class ContactModel:
 
         A node inside the tissue also reaches back along its entry normal by its last depth, so
         the faces it entered through stay in the local model however deep it has gone."""
+        # The boxes of aabb.point_boxes / segment_boxes, made here without their validation (the
+        # tool positions were validated when they came in): this runs in the 1 kHz loop.
         reach = self.params.margin + self.radius
-        lo, hi = aabb.point_boxes(tool0, positions_end=tool1, radius=reach)
+        lo, hi = np.minimum(tool0, tool1) - reach, np.maximum(tool0, tool1) + reach
         inside = np.flatnonzero(self._inside)
         if inside.size:
             back = tool1[inside] + self._entry_normal[inside] * self._contact_depth[inside, None]
             lo[inside] = np.minimum(lo[inside], back - reach)
             hi[inside] = np.maximum(hi[inside], back + reach)
-        node_pairs = self.tree.query_boxes(lo, hi)[:, ::-1]
+        node_pairs = self.tree.query_boxes(lo, hi, check=False)[:, ::-1]
         seg_pairs = None
         if self.n_segments:
-            lo, hi = aabb.segment_boxes(tool1, radius=reach)
-            seg_pairs = self.tree.query_boxes(lo, hi)[:, ::-1]
+            lo, hi = np.minimum(tool1[:-1], tool1[1:]) - reach, np.maximum(tool1[:-1], tool1[1:]) + reach
+            seg_pairs = self.tree.query_boxes(lo, hi, check=False)[:, ::-1]
         self.local.capture(self._frame_t, self._frame_pos, self._frame_vel, self.triangles,
                            node_pairs, self.n_tool, seg_pairs, self.n_segments)
         if self.compliance is not None:
@@ -657,7 +659,7 @@ class ContactModel:
             end = self._frame_pos + self._frame_vel * self.params.frame_period if extrapolate else self._frame_pos
             aabb_kernels.triangle_boxes(self._frame_pos, end, extrapolate, self.triangles, self._box_lo,
                                         self._box_hi)
-            self.tree.refit(self._box_lo, self._box_hi)
+            self.tree.refit(self._box_lo, self._box_hi, check=False)
 
     # ------------------------------------------------------------------ the patch (compliance)
     def patch_nodes(self) -> np.ndarray:

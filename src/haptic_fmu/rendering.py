@@ -62,18 +62,6 @@ class ComplianceError(ValueError):
     """An invalid compliance block W or patch node list from the tissue."""
 
 
-def _csr(pairs: np.ndarray, n_rows: int, face_map: np.ndarray):
-    """CSR (ptr, local faces) of (k,2) pairs (row, global face) with faces mapped to local ids."""
-    if pairs.shape[0] == 0:
-        return np.zeros(n_rows + 1, np.int64), np.zeros(0, np.int64)
-    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
-    rows = pairs[order, 0]
-    faces = face_map[pairs[order, 1]]
-    ptr = np.zeros(n_rows + 1, np.int64)
-    np.cumsum(np.bincount(rows, minlength=n_rows), out=ptr[1:])
-    return ptr, np.ascontiguousarray(faces, dtype=np.int64)
-
-
 class LocalModel:
     """Facets near the tool, captured at a tissue frame; their free motion between frames."""
 
@@ -97,6 +85,13 @@ class LocalModel:
         self.seg_ptr = np.zeros(1, np.int64)
         self.seg_faces = np.zeros(0, np.int64)
 
+    _scratch = None  # capture's work arrays, sized by the surface (not part of the state)
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_scratch", None)
+        return state
+
     def capture(self, t_frame, positions, velocities, triangles, node_pairs, n_nodes,
                 seg_pairs=None, n_segments=0) -> None:
         """Copy the facets named by the candidate pairs out of a tissue frame.
@@ -104,24 +99,33 @@ class LocalModel:
         positions, velocities (n_surface,3) at t_frame; triangles (t,3) surface triangles;
         node_pairs (k,2) (tool node, global face); seg_pairs (k2,2) (tool segment, global face).
         """
-        node_pairs = np.asarray(node_pairs, np.int64).reshape(-1, 2)
-        seg_pairs = np.zeros((0, 2), np.int64) if seg_pairs is None else np.asarray(
-            seg_pairs, np.int64).reshape(-1, 2)
-        faces = np.unique(np.concatenate([node_pairs[:, 1], seg_pairs[:, 1]]))
-        face_map = np.full(triangles.shape[0], -1, np.int64)
-        face_map[faces] = np.arange(faces.size)
-        vertices, local_tri = np.unique(triangles[faces].reshape(-1), return_inverse=True)
+        node_pairs = np.ascontiguousarray(np.asarray(node_pairs, np.int64).reshape(-1, 2))
+        seg_pairs = np.zeros((0, 2), np.int64) if seg_pairs is None else np.ascontiguousarray(
+            np.asarray(seg_pairs, np.int64).reshape(-1, 2))
+        scratch = self._scratch
+        if scratch is None or scratch[0].size != triangles.shape[0] or scratch[1].size != positions.shape[0]:
+            # face and vertex maps (-1 between captures) and room for every face and vertex
+            scratch = self._scratch = (np.full(triangles.shape[0], -1, np.int64),
+                                       np.full(positions.shape[0], -1, np.int64),
+                                       np.empty(triangles.shape[0], np.int64), np.empty(positions.shape[0], np.int64),
+                                       np.empty((triangles.shape[0], 3), np.int64))
+        face_map, vertex_map, faces, vertices, local_tri = scratch
+        node_ptr, seg_ptr = np.empty(n_nodes + 1, np.int64), np.empty(n_segments + 1, np.int64)
+        node_faces, seg_faces = np.empty(node_pairs.shape[0], np.int64), np.empty(seg_pairs.shape[0], np.int64)
+        n_faces, n_vertices = kernels.capture_topology(
+            np.ascontiguousarray(triangles, dtype=np.int64), node_pairs, seg_pairs, face_map, vertex_map, faces,
+            vertices, local_tri, node_ptr, node_faces, seg_ptr, seg_faces)
         self.t_frame = float(t_frame)
-        self.faces = faces
-        self.vertices = vertices
-        self.triangles = np.ascontiguousarray(local_tri.reshape(-1, 3), dtype=np.int64)
-        self.frame_positions = np.ascontiguousarray(positions[vertices], dtype=np.float64)
-        self.frame_velocities = np.ascontiguousarray(velocities[vertices], dtype=np.float64)
+        self.faces = faces[:n_faces].copy()
+        self.vertices = vertices[:n_vertices].copy()
+        self.triangles = local_tri[:n_faces].copy()
+        self.frame_positions = np.ascontiguousarray(positions[self.vertices], dtype=np.float64)
+        self.frame_velocities = np.ascontiguousarray(velocities[self.vertices], dtype=np.float64)
         self.positions = self.frame_positions.copy()
         self.velocities = (self.frame_velocities.copy() if self.extrapolate
                            else np.zeros_like(self.frame_velocities))
-        self.node_ptr, self.node_faces = _csr(node_pairs, n_nodes, face_map)
-        self.seg_ptr, self.seg_faces = _csr(seg_pairs, n_segments, face_map)
+        self.node_ptr, self.node_faces = node_ptr, node_faces
+        self.seg_ptr, self.seg_faces = seg_ptr, seg_faces
 
     @property
     def n_faces(self) -> int:
@@ -145,18 +149,18 @@ def _node_ids(nodes, n_surface, max_nodes):
         if not (np.isfinite(as_float).all() and np.all(as_float == np.round(as_float))):
             raise ComplianceError(f"compliance_nodes must hold integer surface node ids (-1 for unused slots) "
                                   f"(got {raw[:8].tolist()}...)")
-    ids = raw.astype(np.int64)
+    ids = np.ascontiguousarray(raw, dtype=np.int64)
+    status = kernels.patch_id_status(ids, n_surface, max_nodes, np.empty(ids.size, np.int64))
     where = np.flatnonzero(ids >= 0)
     valid = ids[where]
-    bad = np.flatnonzero((ids < -1) | (ids >= n_surface))
-    if bad.size:
+    if status == 1:
+        bad = np.flatnonzero((ids < -1) | (ids >= n_surface))
         raise ComplianceError(f"compliance_nodes must be surface node ids 0..{n_surface - 1} or -1 (unused) "
                               f"(got {ids[bad[:5]].tolist()} at slots {bad[:5].tolist()})")
-    if valid.size > max_nodes:
+    if status == 2:
         raise ComplianceError(f"compliance_nodes names {valid.size} nodes, more than max_patch_nodes = {max_nodes}")
-    ordered = np.sort(valid)
-    if (ordered[1:] == ordered[:-1]).any():
-        raise ComplianceError(f"compliance_nodes repeats node ids ({ordered.tolist()}): each node once")
+    if status == 3:
+        raise ComplianceError(f"compliance_nodes repeats node ids ({np.sort(valid).tolist()}): each node once")
     return valid, where
 
 
@@ -174,43 +178,42 @@ def check_compliance(compliance, nodes, n_surface, max_nodes):
     w = np.asarray(compliance, dtype=np.float64)
     size = w.size
     if size == (3 * n_given) ** 2:
-        full = w.reshape(3 * n_given, 3 * n_given)
+        w = w.reshape(3 * n_given, 3 * n_given)
         cols = (3 * where[:, None] + np.arange(3)).reshape(-1)
-        w = full[np.ix_(cols, cols)]
     elif size == (3 * p) ** 2:
         w = w.reshape(3 * p, 3 * p)
+        cols = np.arange(3 * p)
     else:
         raise ComplianceError(
             f"compliance must be a (3n x 3n) matrix for the n = {n_given} compliance_nodes slots "
             f"({(3 * n_given) ** 2} values) or for the {p} valid ids ({(3 * p) ** 2} values) (got shape "
             f"{np.shape(compliance)}): give W in m/N, rows and columns (x, y, z) per node in the order of the ids")
-    if not np.isfinite(w).all():
-        bad = np.argwhere(~np.isfinite(w))[0]
-        raise ComplianceError(f"compliance contains NaN or inf (first at row {bad[0]}, column {bad[1]}): "
-                              "the tissue's solve for W failed")
+    # One pass over the block in a kernel (extraction, finiteness, symmetry, symmetric part): this
+    # runs at every tissue frame inside the 1 kHz loop, where a dozen numpy calls cost 100 us.
+    block = np.empty((cols.size, cols.size))
+    bad, scale, asym = kernels.compliance_block(w, cols, block)
+    if bad >= 0:
+        raise ComplianceError(f"compliance contains NaN or inf (first at row {bad // cols.size}, column "
+                              f"{bad % cols.size}): the tissue's solve for W failed")
     if p == 0:
         return ids, np.zeros((0, 0)), where
-    scale = float(np.abs(w).max())
-    asym = float(np.abs(w - w.T).max())
     if asym > SYMMETRY_TOLERANCE * scale:
         raise ComplianceError(f"compliance is not symmetric: max |W - W^T| = {asym:.3g} m/N, more than "
                               f"{SYMMETRY_TOLERANCE:g} of its largest entry {scale:.3g} m/N (a compliance of a "
                               "conservative linear system is symmetric): check the node order of rows and columns")
-    w = 0.5 * (w + w.T)
+    w = block
     if scale > 0.0:
         # Smallest eigenvalue >= -shift exactly when W + shift I has a Cholesky factor (up to its
-        # round-off): 19 us for a 48 x 48 W, where eigvalsh takes 97 us of each tissue frame's
+        # round-off): a few us in a kernel, where eigvalsh takes 97 us of each tissue frame's
         # intake in the 1 kHz loop. eigvalsh decides, and measures, only where the factor fails.
         shift = PSD_TOLERANCE * scale * w.shape[0]
-        try:
-            np.linalg.cholesky(w + shift * np.eye(w.shape[0]))
-        except np.linalg.LinAlgError:
+        if not kernels.cholesky_succeeds(w, shift, np.empty_like(w)):
             lowest = float(np.linalg.eigvalsh(w)[0])
             if lowest < -shift:
                 raise ComplianceError(f"compliance is not positive semi-definite: smallest eigenvalue {lowest:.3g} "
                                       f"m/N (largest entry {scale:.3g} m/N): a wall cannot move against the force "
-                                      "on it") from None
-    return ids, np.ascontiguousarray(w), where
+                                      "on it")
+    return ids, w, where
 
 
 class WallCompliance:

@@ -447,3 +447,150 @@ def publish(node_force, tool_force, tip_force, patch, patch_out):
         tip_force[d] = node_force[n - 1, d]
     for i in range(patch.shape[0]):
         patch_out[i] = patch[i]
+
+
+@njit(cache=True)
+def _sort_segment(values, lo, hi):
+    """Insertion sort of values[lo:hi] (a tool primitive's few candidate faces)."""
+    for i in range(lo + 1, hi):
+        v = values[i]
+        j = i - 1
+        while j >= lo and values[j] > v:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = v
+
+
+@njit(cache=True)
+def _candidate_csr(pairs, n_rows, face_map, ptr, faces):
+    """CSR of (row, global face) pairs with faces mapped to local ids, ascending within a row
+    (the order of a lexsort by row, then face: local ids ascend with the global ones)."""
+    for r in range(n_rows + 1):
+        ptr[r] = 0
+    for k in range(pairs.shape[0]):
+        ptr[pairs[k, 0] + 1] += 1
+    for r in range(n_rows):
+        ptr[r + 1] += ptr[r]
+    for k in range(pairs.shape[0]):  # ptr[r] walks from row r's start to its end ...
+        r = pairs[k, 0]
+        faces[ptr[r]] = face_map[pairs[k, 1]]
+        ptr[r] += 1
+    for r in range(n_rows, 0, -1):  # ... which is row r + 1's start: shift back
+        ptr[r] = ptr[r - 1]
+    ptr[0] = 0
+    for r in range(n_rows):
+        _sort_segment(faces, ptr[r], ptr[r + 1])
+
+
+@njit(cache=True)
+def capture_topology(triangles, node_pairs, seg_pairs, face_map, vertex_map,
+                     faces, vertices, local_tri, node_ptr, node_faces, seg_ptr, seg_faces):
+    """The local model's topology from the broad phase's candidate pairs (``LocalModel.capture``).
+
+    triangles (t,3) global surface triangles; node_pairs (k,2) (tool node, global face) and
+    seg_pairs (k2,2) (tool segment, global face) in any order. Out: faces (sorted global ids of
+    every face named), vertices (their sorted global vertex ids), local_tri (faces' vertices as
+    local ids), the CSR of the candidates per tool node and per segment (local face ids,
+    ascending within a row). face_map (t) and vertex_map (n_surface) are scratch, all -1 on entry
+    and on return. Returns (number of faces, number of vertices): the used lengths of faces,
+    local_tri rows and vertices; node_faces and seg_faces are filled in full (k and k2).
+    """
+    for k in range(node_pairs.shape[0]):
+        face_map[node_pairs[k, 1]] = 0
+    for k in range(seg_pairs.shape[0]):
+        face_map[seg_pairs[k, 1]] = 0
+    n_faces = 0
+    for f in range(triangles.shape[0]):  # ascending global ids: the order of np.unique
+        if face_map[f] == 0:
+            face_map[f] = n_faces
+            faces[n_faces] = f
+            n_faces += 1
+    for i in range(n_faces):
+        for j in range(3):
+            vertex_map[triangles[faces[i], j]] = 0
+    n_vertices = 0
+    for v in range(vertex_map.shape[0]):
+        if vertex_map[v] == 0:
+            vertex_map[v] = n_vertices
+            vertices[n_vertices] = v
+            n_vertices += 1
+    for i in range(n_faces):
+        for j in range(3):
+            local_tri[i, j] = vertex_map[triangles[faces[i], j]]
+    _candidate_csr(node_pairs, node_ptr.shape[0] - 1, face_map, node_ptr, node_faces)
+    _candidate_csr(seg_pairs, seg_ptr.shape[0] - 1, face_map, seg_ptr, seg_faces)
+    for i in range(n_faces):  # leave the scratch as it came
+        face_map[faces[i]] = -1
+    for i in range(n_vertices):
+        vertex_map[vertices[i]] = -1
+    return n_faces, n_vertices
+
+
+@njit(cache=True)
+def patch_id_status(ids, n_surface, max_nodes, valid_sorted):
+    """Check a -1 padded patch id list (``rendering.check_compliance``): 0 fine, 1 an id outside
+    -1..n_surface-1, 2 more than max_nodes valid ids, 3 an id repeated. valid_sorted (len(ids))
+    is scratch: its first p entries end as the valid ids, ascending."""
+    p = 0
+    for i in range(ids.shape[0]):
+        v = ids[i]
+        if v < -1 or v >= n_surface:
+            return 1
+        if v >= 0:
+            valid_sorted[p] = v
+            p += 1
+    if p > max_nodes:
+        return 2
+    _sort_segment(valid_sorted, 0, p)
+    for i in range(1, p):
+        if valid_sorted[i] == valid_sorted[i - 1]:
+            return 3
+    return 0
+
+
+@njit(cache=True)
+def compliance_block(w, cols, out):
+    """out = the symmetric part of the block w[cols][:, cols] (row-major, so the same bits as
+    ``0.5 * (b + b.T)``). Returns (first non-finite entry of the block as row * len(cols) + col,
+    or -1; its largest |entry|; its largest |b_ij - b_ji|); out is left partial when an entry is
+    not finite."""
+    m = cols.shape[0]
+    scale = 0.0
+    for i in range(m):
+        for j in range(m):
+            a = w[cols[i], cols[j]]
+            if not math.isfinite(a):
+                return i * m + j, 0.0, 0.0
+            scale = max(scale, abs(a))
+    asym = 0.0
+    for i in range(m):
+        for j in range(m):
+            a = w[cols[i], cols[j]]
+            b = w[cols[j], cols[i]]
+            asym = max(asym, abs(a - b))
+            out[i, j] = 0.5 * (a + b)
+    return -1, scale, asym
+
+
+@njit(cache=True)
+def cholesky_succeeds(a, shift, work):
+    """Whether a + shift I (symmetric) has a Cholesky factor: every pivot positive (work: m x m)."""
+    m = a.shape[0]
+    for i in range(m):
+        for j in range(i + 1):
+            work[i, j] = a[i, j]
+        work[i, i] += shift
+    for j in range(m):
+        s = work[j, j]
+        for k in range(j):
+            s -= work[j, k] * work[j, k]
+        if not s > 0.0:
+            return False
+        d = math.sqrt(s)
+        work[j, j] = d
+        for i in range(j + 1, m):
+            s = work[i, j]
+            for k in range(j):
+                s -= work[i, k] * work[j, k]
+            work[i, j] = s / d
+    return True
