@@ -122,6 +122,7 @@ class InProcessFmu:
         self._library: Fmi3Library | None = None
         self._unzip_dir: str | None = None
         self._initialized = False
+        self._left_initialization = False  # fmi3Terminate is illegal before (free the instance only)
         self._terminated = False
         self._input_slots: dict[str, np.ndarray] = {}
         self._input_index: dict[str, int] = {}
@@ -229,6 +230,7 @@ class InProcessFmu:
 
     def exit_initialization(self) -> None:
         self._require_instance("exit_initialization").exit_initialization_mode()
+        self._left_initialization = True
 
     def configure(self, inputs: list[str], observed: list[str]) -> None:
         inputs, observed = list(inputs), list(observed)
@@ -314,7 +316,9 @@ class InProcessFmu:
         self._terminated = True
         instance = self.instance
         if instance is not None:
-            if self._initialized and not instance.failed and not instance.freed:
+            # In Initialization Mode (a run that failed before it started) fmi3Terminate is not a
+            # legal call: the instance is only freed.
+            if self._left_initialization and not instance.failed and not instance.freed:
                 try:
                     instance.terminate()
                 except FmuCallError as exc:

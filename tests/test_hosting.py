@@ -6,6 +6,7 @@ the call and the simulated time; nothing may leak (shared memory, processes).
 """
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -283,6 +284,17 @@ def test_terminate_is_idempotent_and_leaves_nothing(kind, synthetic_fmus):
         assert not unzip_dir.exists()
     with pytest.raises(RuntimeError, match="after terminate"):
         host.get_outputs()
+
+
+def test_a_run_that_fails_in_initialization_frees_without_an_illegal_terminate(kind, synthetic_fmus, caplog):
+    """fmi3Terminate is not allowed in Initialization Mode (FMI 3.0 state machine): a host ended
+    there (a run that failed while initializing) frees its instance without calling it."""
+    host = HOSTS[kind]("echo", read_fmu(synthetic_fmus["Echo"]))
+    host.instantiate()
+    host.enter_initialization(0.0)
+    with caplog.at_level(logging.WARNING):
+        host.terminate()
+    assert not [r for r in caplog.records if "Terminate" in r.getMessage() or "illegal" in r.getMessage()]
 
 
 def test_building_an_fmu_does_not_break_instances_loaded_in_this_process(contact_fmu, tmp_path):
