@@ -483,6 +483,19 @@ def _candidate_csr(pairs, n_rows, face_map, ptr, faces):
 
 
 @njit(cache=True)
+def _number_marked(index_map, ids):
+    """Number the entries marked 0 in index_map consecutively in ascending order (the order of
+    np.unique), writing them into ids; returns how many."""
+    n = 0
+    for i in range(index_map.shape[0]):
+        if index_map[i] == 0:
+            index_map[i] = n
+            ids[n] = i
+            n += 1
+    return n
+
+
+@njit(cache=True)
 def capture_topology(triangles, node_pairs, seg_pairs, face_map, vertex_map,
                      faces, vertices, local_tri, node_ptr, node_faces, seg_ptr, seg_faces):
     """The local model's topology from the broad phase's candidate pairs (``LocalModel.capture``).
@@ -499,21 +512,11 @@ def capture_topology(triangles, node_pairs, seg_pairs, face_map, vertex_map,
         face_map[node_pairs[k, 1]] = 0
     for k in range(seg_pairs.shape[0]):
         face_map[seg_pairs[k, 1]] = 0
-    n_faces = 0
-    for f in range(triangles.shape[0]):  # ascending global ids: the order of np.unique
-        if face_map[f] == 0:
-            face_map[f] = n_faces
-            faces[n_faces] = f
-            n_faces += 1
+    n_faces = _number_marked(face_map, faces)
     for i in range(n_faces):
         for j in range(3):
             vertex_map[triangles[faces[i], j]] = 0
-    n_vertices = 0
-    for v in range(vertex_map.shape[0]):
-        if vertex_map[v] == 0:
-            vertex_map[v] = n_vertices
-            vertices[n_vertices] = v
-            n_vertices += 1
+    n_vertices = _number_marked(vertex_map, vertices)
     for i in range(n_faces):
         for j in range(3):
             local_tri[i, j] = vertex_map[triangles[faces[i], j]]
