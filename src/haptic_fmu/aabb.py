@@ -88,27 +88,36 @@ def triangle_boxes(positions, triangles, positions_end=None, inflate=0.0):
     return _inflated(lo, hi, inflate)
 
 
-def segment_boxes(points, positions_end=None, radius=0.0):
-    """Boxes of the k-1 segments of a polyline (e.g. a tool centerline), inflated by its radius."""
-    points = _points_array("points", points, "polyline vertices in order, one row per vertex")
-    if points.shape[0] < 2:
-        raise AABBInputError(f"points must hold at least 2 polyline vertices (got {points.shape[0]})")
-    radius = _margin("radius", radius)
-    end = _end_positions(positions_end, points)
-    ends = [points[:-1], points[1:]]
+def segment_boxes(points, positions_end=None, radius=0.0, check=True):
+    """Boxes of the k-1 segments of a polyline (e.g. a tool centerline), inflated by its radius.
+
+    check=False skips the validation for points the caller validated (finite (k, 3) float64)."""
+    if check:
+        points = _points_array("points", points, "polyline vertices in order, one row per vertex")
+        if points.shape[0] < 2:
+            raise AABBInputError(f"points must hold at least 2 polyline vertices (got {points.shape[0]})")
+        radius = _margin("radius", radius)
+        end = _end_positions(positions_end, points)
+    else:
+        end = positions_end
+    lo, hi = np.minimum(points[:-1], points[1:]), np.maximum(points[:-1], points[1:])
     if end is not None:
-        ends += [end[:-1], end[1:]]
-    return _inflated(*_boxes_of_groups(np.stack(ends, axis=1)), radius)
+        lo = np.minimum(lo, np.minimum(end[:-1], end[1:]))
+        hi = np.maximum(hi, np.maximum(end[:-1], end[1:]))
+    return _inflated(lo, hi, radius)
 
 
-def point_boxes(points, positions_end=None, radius=0.0):
-    """Boxes of points (swept to positions_end when given), inflated by radius."""
-    points = _points_array("points", points, "point positions, one row per point")
-    radius = _margin("radius", radius)
-    end = _end_positions(positions_end, points)
-    if end is None:
+def point_boxes(points, positions_end=None, radius=0.0, check=True):
+    """Boxes of points (swept to positions_end when given), inflated by radius.
+
+    check=False: as for `segment_boxes`."""
+    if check:
+        points = _points_array("points", points, "point positions, one row per point")
+        radius = _margin("radius", radius)
+        positions_end = _end_positions(positions_end, points)
+    if positions_end is None:
         return _inflated(points.copy(), points.copy(), radius)
-    return _inflated(np.minimum(points, end), np.maximum(points, end), radius)
+    return _inflated(np.minimum(points, positions_end), np.maximum(points, positions_end), radius)
 
 
 def spline_swept_boxes(p0, p1, v0, v1, dt, triangles, inflate=0.0):

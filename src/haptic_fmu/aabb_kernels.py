@@ -89,15 +89,10 @@ def refit_tree(lo, hi, order, n_nodes, node_lo, node_hi, left, right, start, cou
     place entry by entry, measured; this runs at every tissue frame inside the 1 kHz loop)."""
     for node in range(n_nodes - 1, -1, -1):
         l = left[node]
-        if l < 0 and count[node] == 0:  # the root of an empty tree
-            _union_of_primitives(lo, hi, order, start[node], 0, node_lo, node_hi, node)
-            continue
-        if l < 0:
-            s = start[node]
-            p = order[s]
-            x0, x1, x2 = lo[p, 0], lo[p, 1], lo[p, 2]
-            y0, y1, y2 = hi[p, 0], hi[p, 1], hi[p, 2]
-            for k in range(s + 1, s + count[node]):
+        if l < 0:  # a leaf (the root of an empty tree has no primitives: an empty box)
+            x0 = x1 = x2 = np.inf
+            y0 = y1 = y2 = -np.inf
+            for k in range(start[node], start[node] + count[node]):
                 p = order[k]
                 x0 = x0 if x0 < lo[p, 0] else lo[p, 0]
                 x1 = x1 if x1 < lo[p, 1] else lo[p, 1]
