@@ -21,7 +21,9 @@ decision is computed once per such state and then looked up (a 1 kHz loop beside
 has 300 ticks of hyperperiod and a few hundred states), so the per-tick work is a table lookup,
 the input routes and the output fan-out precomputed per component. A step of a host that is
 ``asynchronous`` (a worker process) is started as soon as it may, after the in-process steps of
-the same tick, and collected only when a consumer needs it.
+the same tick, and collected as soon as it is done (looked at every few calls) or when a
+consumer needs it, whichever comes first: values depend on ticks only, so when is a matter of
+wall time, and early is off the tick that needs the result.
 
 Initialization propagates outputs to inputs before the first step: components leave
 initialization mode in the order of their connections (producers first), each receiving the
@@ -48,6 +50,8 @@ logger = logging.getLogger(__name__)
 
 #: Most schedule states remembered; a pathological rate mix beyond that is decided afresh each time.
 _SCHEDULE_CACHE_LIMIT = 200_000
+#: Asynchronous steps are looked at (a poll without waiting, about 1 us) every this many events + 1.
+_POLL_EVERY_MASK = 3
 
 
 class RunInterrupted(OrchestrationError):
@@ -429,10 +433,18 @@ class MultirateAlgorithm:
         # Beyond this tick the end of the run changes decisions: they are no longer remembered.
         self._cache_until = self.end - 3 * lookahead
         events = 0
+        asynchronous = [c for c in comps if c.asynchronous]
         self.notify("started")
         while True:
             if self.stop_reason:
                 raise RunInterrupted(self.stop_reason)
+            if asynchronous and not events & _POLL_EVERY_MASK:
+                # A worker's step is collected once it is done, not at the tick that needs it: a
+                # 30 Hz result then reaches the histories (copies, recording) between haptic
+                # ticks instead of inside the one that also takes in the new frame.
+                for comp in asynchronous:
+                    if comp.running and comp.host.step_done():
+                        self._finish(comp, clock)
             t_min = min(c.time for c in comps) if comps else self.end
             if t_min < self._cache_until and comps:
                 key = (t_min % period, *[c.time - t_min for c in comps], *[c.running for c in comps])

@@ -797,6 +797,9 @@ class DevicePlant:
     def wait_handle(self) -> object | None:
         return None
 
+    def step_done(self) -> bool:
+        return True  # synchronous: start_step did the step
+
     def terminate(self) -> None:
         self._state = "terminated"
         self._pending = None

@@ -48,8 +48,8 @@ class ComponentHost(Protocol):
 
     ``asynchronous`` (a class attribute, known before ``instantiate``): ``start_step`` only sends
     the step off (to a worker process) and ``finish_step`` waits for it, so the master starts such
-    a step as early as it may and collects it only when a consumer needs it. Otherwise the step is
-    done by ``start_step``.
+    a step as early as it may and collects it once ``step_done()`` says it has ended, or when a
+    consumer needs it. Otherwise the step is done by ``start_step`` (``step_done()`` is True).
     """
 
     asynchronous: bool
@@ -71,6 +71,7 @@ class ComponentHost(Protocol):
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None: ...
     def finish_step(self) -> dict[str, np.ndarray]: ...   # outputs valid until the next step (copy to keep)
     def wait_handle(self) -> object | None: ...
+    def step_done(self) -> bool: ...
     def terminate(self) -> None: ...
 
 
@@ -308,6 +309,9 @@ class InProcessFmu:
 
     def wait_handle(self) -> None:
         return None
+
+    def step_done(self) -> bool:
+        return True  # synchronous: start_step did the step
 
     def terminate(self) -> None:
         """fmi3Terminate, fmi3FreeInstance, unload and delete the extracted files; never raises."""

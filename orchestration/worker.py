@@ -259,6 +259,21 @@ class WorkerFmu:
         """The pipe: readable when the step is done (or the worker died)."""
         return self._conn
 
+    def step_done(self) -> bool:
+        """Whether the step in flight has ended (or the worker is gone): finish_step will not wait."""
+        if self._pending is None:
+            return True
+        return bool(self._watch().poll(0))
+
+    def _watch(self):
+        """One poll object on the pipe and the process sentinel: a microsecond per look, where
+        multiprocessing.connection.wait builds a selector each time (10-20 us)."""
+        if self._poller is None:
+            self._poller = select.poll()
+            self._poller.register(self._conn.fileno(), select.POLLIN)
+            self._poller.register(self._process.sentinel, select.POLLIN)
+        return self._poller
+
     @property
     def pid(self) -> int | None:
         """The worker process's id (None before instantiate)."""
@@ -348,13 +363,7 @@ class WorkerFmu:
 
     def _receive(self, call: str, timeout: float | None = None):
         conn = self._conn
-        # One poll object watching the pipe and the process sentinel: a few us per wait, where
-        # multiprocessing.connection.wait builds a selector each time (10-20 us).
-        poller = self._poller
-        if poller is None:
-            poller = self._poller = select.poll()
-            poller.register(conn.fileno(), select.POLLIN)
-            poller.register(self._process.sentinel, select.POLLIN)
+        poller = self._watch()
         conn_fd = conn.fileno()
         while True:
             events = poller.poll(_LIVENESS_INTERVAL_MS)

@@ -1,9 +1,10 @@
 """The contact's tissue-frame intake kernels against plain numpy references (the code they
-replaced in the 1 kHz loop): the local model's topology, the tree refit and the compliance block."""
+replaced in the 1 kHz loop): the local model's topology, the tree refit, the tool's query boxes,
+the patch slots and the compliance block."""
 import numpy as np
 import pytest
 
-from haptic_fmu import aabb, rendering, rendering_kernels
+from haptic_fmu import aabb, aabb_kernels, rendering, rendering_kernels
 from haptic_fmu.rendering import LocalModel, check_compliance
 
 
@@ -61,6 +62,69 @@ def test_refit_gives_every_node_the_box_of_its_primitives():
         prims = tree.order[tree.start[node]: tree.start[node] + tree.count[node]]
         np.testing.assert_array_equal(tree.node_lo[node], new_lo[prims].min(axis=0))
         np.testing.assert_array_equal(tree.node_hi[node], new_hi[prims].max(axis=0))
+
+
+def test_refit_in_place_equals_refit():
+    rng = np.random.default_rng(3)
+    lo = rng.normal(size=(300, 3))
+    a, b = aabb.AABBTree.build(lo, lo + 0.1), aabb.AABBTree.build(lo, lo + 0.1)
+    new_lo = lo + rng.normal(scale=0.3, size=lo.shape)
+    a.refit(new_lo, new_lo + 0.05)
+    b.lo[...], b.hi[...] = new_lo, new_lo + 0.05
+    b.refit_in_place()
+    np.testing.assert_array_equal(a.node_lo[:a.n_nodes], b.node_lo[:b.n_nodes])
+    np.testing.assert_array_equal(a.node_hi[:a.n_nodes], b.node_hi[:b.n_nodes])
+
+
+@pytest.mark.parametrize("reach", [0.0, 0.004])
+def test_tool_query_boxes_equal_the_numpy_reference(reach):
+    """The kernels' boxes are bit for bit those of aabb.point_boxes / segment_boxes with the
+    inside nodes' reach back along their entry normals (the numpy code they replaced)."""
+    rng = np.random.default_rng(5)
+    k = 31
+    tool0, tool1 = rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
+    inside = (rng.uniform(size=k) < 0.3).astype(np.int8)
+    normal, depth = rng.normal(size=(k, 3)), rng.uniform(0, 0.01, size=2 * k - 1)  # depth: nodes, then segments
+    lo, hi = np.empty((k, 3)), np.empty((k, 3))
+    aabb_kernels.swept_point_boxes(tool0, tool1, reach, inside, normal, depth, lo, hi)
+    want_lo, want_hi = aabb.point_boxes(tool0, positions_end=tool1, radius=reach)
+    at = np.flatnonzero(inside)
+    back = tool1[at] + normal[at] * depth[at, None]
+    want_lo[at] = np.minimum(want_lo[at], back - reach)
+    want_hi[at] = np.maximum(want_hi[at], back + reach)
+    np.testing.assert_array_equal(lo, want_lo)
+    np.testing.assert_array_equal(hi, want_hi)
+    seg_lo, seg_hi = np.empty((k - 1, 3)), np.empty((k - 1, 3))
+    aabb_kernels.polyline_segment_boxes(tool1, reach, seg_lo, seg_hi)
+    want_lo, want_hi = aabb.segment_boxes(tool1, radius=reach)
+    np.testing.assert_array_equal(seg_lo, want_lo)
+    np.testing.assert_array_equal(seg_hi, want_hi)
+
+
+def test_unsorted_query_finds_the_same_pairs():
+    rng = np.random.default_rng(6)
+    lo = rng.uniform(0, 1, size=(500, 3))
+    tree = aabb.AABBTree.build(lo, lo + 0.05)
+    q_lo = rng.uniform(0, 1, size=(40, 3))
+    pairs = tree.query_boxes(q_lo, q_lo + 0.1, check=False, sort=False)
+    assert pairs.shape[0] > 40
+    np.testing.assert_array_equal(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))], tree.query_boxes(q_lo, q_lo + 0.1))
+
+
+def test_patch_slots_and_longest_row_equal_the_numpy_reference():
+    rng = np.random.default_rng(7)
+    ids = rng.permutation(200)[:12]
+    local_vertices = np.sort(rng.permutation(200)[:60])
+    slot = np.empty(60, np.int64)
+    rendering_kernels.patch_slots(ids, local_vertices, slot)
+    order = np.argsort(ids)  # the searchsorted version the kernel replaced
+    at = np.minimum(np.searchsorted(ids[order], local_vertices), ids.size - 1)
+    want = np.where(ids[order][at] == local_vertices, order[at], -1)
+    np.testing.assert_array_equal(slot, want)
+    assert (slot >= 0).sum() == np.isin(local_vertices, ids).sum()
+    ptr = np.cumsum(np.concatenate([[0], rng.integers(0, 9, 30)]))
+    assert rendering_kernels.longest_row(ptr) == np.diff(ptr).max()
+    assert rendering_kernels.longest_row(np.zeros(1, np.int64)) == 0
 
 
 def test_query_boxes_finds_every_overlap_however_many():

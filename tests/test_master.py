@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from fractions import Fraction
 
 import numpy as np
@@ -265,21 +266,26 @@ class _StepTrace:
         self.events.append(("end", component.name, tick))
 
 
-@pytest.mark.parametrize("signal_hosting,overlapped", [("out-of-process", (33, 33, 33)), ("in-process", (0, 0, 0))])
-def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, signal_hosting, overlapped):
-    """A 1/30 s step in a worker is collected only when the 1 ms consumer needs it (jacobi), and
-    started after the consumer's step of the same tick. In ticks of 1/3000 s the worker steps
-    [0, 100], [100, 200], ...: the consumer's step [0, 3] goes before the first, [3, 6] ... [99, 102]
-    run while it steps (they need only the sample at 0) and [102, 105] ... [198, 201] while the
-    second does: 33 consumer steps end during each worker step. In process there is nothing to
-    overlap."""
+@pytest.mark.parametrize("signal_hosting", ["out-of-process", "in-process"])
+def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, signal_hosting):
+    """A 1/30 s step in a worker runs while the 1 ms consumer goes on, and is collected once it is
+    done, before the consumer needs it (jacobi). In ticks of 1/3000 s the worker steps [0, 100],
+    [100, 200], ...; the consumer's steps [3, 6] ... [99, 102] need only the sample at 0, [102, 105]
+    the one at 100. The consumer's steps take 2 ms each here and the worker's almost nothing, so
+    the worker's result arrives a few consumer steps after its start, far ahead of the 33rd. In
+    process there is nothing to overlap."""
     from orchestration.algorithm import MultirateAlgorithm
     from orchestration.hosting import InProcessFmu
     from orchestration.worker import WorkerFmu
 
+    class SlowFmu(InProcessFmu):
+        def start_step(self, t, h, inputs):
+            time.sleep(0.002)
+            super().start_step(t, h, inputs)
+
     data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
     scene = scene_from_dict(data, tmp_path)
-    hosts = {"signal": WorkerFmu if signal_hosting == "out-of-process" else InProcessFmu, "echo": InProcessFmu}
+    hosts = {"signal": WorkerFmu if signal_hosting == "out-of-process" else InProcessFmu, "echo": SlowFmu}
     trace = _StepTrace()
     algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: hosts[spec.name](spec.name, spec.description),
                                    [trace])
@@ -294,7 +300,13 @@ def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, si
         begin = events.index(("start", "signal", 100 * k))
         end = events.index(("end", "signal", 100 * (k + 1)))
         echo_steps = [e for e in events[begin:end] if e[:2] == ("end", "echo")]
-        assert len(echo_steps) == overlapped[k], (k, echo_steps)
+        needing = 3 * -(-100 * (k + 1) // 3)  # the first consumer step that reads the sample at 100 (k + 1)
+        if needing < 300:  # the run ends at 300
+            assert end < events.index(("start", "echo", needing))
+        if signal_hosting == "out-of-process":
+            assert 1 <= len(echo_steps) < 25, (k, echo_steps)
+        else:
+            assert echo_steps == []
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")

@@ -163,14 +163,14 @@ def _sorted_pairs(pairs):
     return pairs[order]
 
 
-def _collect(run, initial_capacity):
+def _collect(run, initial_capacity, sort=True):
     """Run a counting kernel into a buffer, growing it once if the first one was too small."""
     out = np.empty((max(initial_capacity, 16), 2), dtype=np.int64)
     found = run(out)
     if found > out.shape[0]:
         out = np.empty((found, 2), dtype=np.int64)
         found = run(out)
-    return _sorted_pairs(out[:found])
+    return _sorted_pairs(out[:found]) if sort else out[:found]
 
 
 class AABBTree:
@@ -242,10 +242,17 @@ class AABBTree:
 
         return _collect(run, 4 * (self.n_primitives + other.n_primitives))
 
-    def query_boxes(self, lo, hi, check=True):
+    def refit_in_place(self):
+        """`refit` for boxes written straight into ``self.lo``, ``self.hi`` (no copy; the caller
+        makes them from validated positions, as for ``refit(..., check=False)``)."""
+        aabb_kernels.refit_tree(self.lo, self.hi, self.order, self.n_nodes, self.node_lo, self.node_hi,
+                                self.left, self.right, self.start, self.count)
+
+    def query_boxes(self, lo, hi, check=True, sort=True):
         """(k, 2) int64 pairs (i primitive of self, j query box) whose boxes overlap, sorted.
 
-        check=False: as for `refit`, and lo, hi C-contiguous."""
+        check=False: as for `refit`, and lo, hi C-contiguous. sort=False: the same pairs in the
+        traversal's order (for a caller that groups them itself)."""
         if check:
             lo, hi = _boxes_pair(lo, hi, "AABBTree.query_boxes")
         if self.n_primitives == 0 or lo.shape[0] == 0:
@@ -257,4 +264,4 @@ class AABBTree:
 
         # A few boxes (a tool's) meet a few primitives each: a buffer sized by the query, not by
         # the tree (a tree-sized one costs more to allocate than the query itself); grown if short.
-        return _collect(run, 16 * lo.shape[0] + 64)
+        return _collect(run, 16 * lo.shape[0] + 64, sort)

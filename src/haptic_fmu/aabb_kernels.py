@@ -213,3 +213,39 @@ def triangle_boxes(pos, end, use_end, tri, lo, hi):
                     mx = max(mx, x)
             lo[f, d] = mn
             hi[f, d] = mx
+
+
+@njit(cache=True)
+def swept_point_boxes(p0, p1, reach, covers, back_dir, back_len, lo, hi):
+    """Boxes of points swept from p0 to p1 (k,3), inflated by reach (when > 0), into lo, hi (k,3);
+    where covers[i] != 0 the box also covers p1[i] + back_dir[i] * back_len[i] (reach around it).
+    The contact model's tool-node query boxes: a node inside the tissue reaches back along its
+    entry normal by its depth, so the faces it entered through stay in the local model."""
+    for i in range(p0.shape[0]):
+        for a in range(3):
+            mn = min(p0[i, a], p1[i, a])
+            mx = max(p0[i, a], p1[i, a])
+            if reach > 0.0:
+                mn = mn - reach
+                mx = mx + reach
+            if covers[i] != 0:
+                back = p1[i, a] + back_dir[i, a] * back_len[i]
+                mn = min(mn, back - reach)
+                mx = max(mx, back + reach)
+            lo[i, a] = mn
+            hi[i, a] = mx
+
+
+@njit(cache=True)
+def polyline_segment_boxes(points, reach, lo, hi):
+    """Boxes of the k-1 segments of a polyline points (k,3), inflated by reach (when > 0), into
+    lo, hi (k-1,3)."""
+    for i in range(points.shape[0] - 1):
+        for a in range(3):
+            mn = min(points[i, a], points[i + 1, a])
+            mx = max(points[i, a], points[i + 1, a])
+            if reach > 0.0:
+                mn = mn - reach
+                mx = mx + reach
+            lo[i, a] = mn
+            hi[i, a] = mx

@@ -304,8 +304,9 @@ class ContactModel:
         self._no_patch = np.zeros(0, np.int64)
         self._no_record = np.zeros((0, 3))
         self._pos0 = np.zeros((0, 3))
-        self._box_lo = np.zeros((tri.shape[0], 3))
-        self._box_hi = np.zeros((tri.shape[0], 3))
+        # the broad phase's query boxes: tool nodes, tool segments
+        self._query_boxes = (np.zeros((self.n_tool, 3)), np.zeros((self.n_tool, 3)),
+                             np.zeros((self.n_segments, 3)), np.zeros((self.n_segments, 3)))
         self._ccd_buffers = None
         self._renderer = None
         self.ccd_hits = 0               # diagnostics: contacts started by CCD
@@ -342,12 +343,7 @@ class ContactModel:
         # broad phase: boxes cover the motion the local model may extrapolate to before the next frame
         extrapolate = self.local.extrapolate
         end = pos + vel * self.params.frame_period if extrapolate else pos
-        aabb_kernels.triangle_boxes(pos, end, extrapolate, self.triangles, self._box_lo, self._box_hi)
-        if self.tree is None:
-            self.tree = aabb.AABBTree.build(self._box_lo, self._box_hi)
-            logger.debug("AABB tree built over %d surface triangles", self.triangles.shape[0])
-        else:
-            self.tree.refit(self._box_lo, self._box_hi, check=False)
+        self._fit_tree(pos, end, extrapolate)
         previous = (self._frame_t, self._frame_pos, self._frame_vel)
         self._frame_t, self._frame_pos, self._frame_vel = float(t), pos, vel
         if self.compliance is not None:
@@ -410,17 +406,15 @@ class ContactModel:
         the faces it entered through stay in the local model however deep it has gone."""
         # The tool positions were validated when they came in: no second check in the 1 kHz loop.
         reach = self.params.margin + self.radius
-        lo, hi = aabb.point_boxes(tool0, positions_end=tool1, radius=reach, check=False)
-        inside = np.flatnonzero(self._inside)
-        if inside.size:
-            back = tool1[inside] + self._entry_normal[inside] * self._contact_depth[inside, None]
-            lo[inside] = np.minimum(lo[inside], back - reach)
-            hi[inside] = np.maximum(hi[inside], back + reach)
-        node_pairs = self.tree.query_boxes(lo, hi, check=False)[:, ::-1]
+        lo, hi, seg_lo, seg_hi = self._query_boxes
+        aabb_kernels.swept_point_boxes(tool0, tool1, reach, self._inside, self._entry_normal, self._contact_depth,
+                                       lo, hi)
+        # unsorted: capture groups the pairs by tool primitive itself
+        node_pairs = self.tree.query_boxes(lo, hi, check=False, sort=False)[:, ::-1]
         seg_pairs = None
         if self.n_segments:
-            lo, hi = aabb.segment_boxes(tool1, radius=reach, check=False)
-            seg_pairs = self.tree.query_boxes(lo, hi, check=False)[:, ::-1]
+            aabb_kernels.polyline_segment_boxes(tool1, reach, seg_lo, seg_hi)
+            seg_pairs = self.tree.query_boxes(seg_lo, seg_hi, check=False, sort=False)[:, ::-1]
         self.local.capture(self._frame_t, self._frame_pos, self._frame_vel, self.triangles,
                            node_pairs, self.n_tool, seg_pairs, self.n_segments)
         if self.compliance is not None:
@@ -429,7 +423,7 @@ class ContactModel:
         self._pos0 = np.zeros_like(self.local.positions)
         cap = self.local.node_faces.size
         self._ccd_buffers = (np.zeros((cap, 8, 3)), np.zeros(cap, np.int64), np.zeros(cap, np.int64))
-        most = max(int(np.diff(self.local.node_ptr).max(initial=0)), int(np.diff(self.local.seg_ptr).max(initial=0)))
+        most = max(rendering_kernels.longest_row(self.local.node_ptr), rendering_kernels.longest_row(self.local.seg_ptr))
         if most > self._blend_work.shape[0]:
             self._blend_work = np.zeros((most, 8))       # the narrow phase's contact-normal scratch
         self.local_refreshes += 1
@@ -656,9 +650,18 @@ class ContactModel:
         if self._frame_pos is not None:
             extrapolate = self.local.extrapolate
             end = self._frame_pos + self._frame_vel * self.params.frame_period if extrapolate else self._frame_pos
-            aabb_kernels.triangle_boxes(self._frame_pos, end, extrapolate, self.triangles, self._box_lo,
-                                        self._box_hi)
-            self.tree.refit(self._box_lo, self._box_hi, check=False)
+            self._fit_tree(self._frame_pos, end, extrapolate)
+
+    def _fit_tree(self, pos, end, extrapolate) -> None:
+        """The AABB tree over the surface triangles at this frame (built at the first)."""
+        if self.tree is None:
+            lo, hi = np.empty((self.triangles.shape[0], 3)), np.empty((self.triangles.shape[0], 3))
+            aabb_kernels.triangle_boxes(pos, end, extrapolate, self.triangles, lo, hi)
+            self.tree = aabb.AABBTree.build(lo, hi)
+            logger.debug("AABB tree built over %d surface triangles", self.triangles.shape[0])
+        else:  # the boxes go straight into the tree's own: no copy of two (t, 3) arrays per frame
+            aabb_kernels.triangle_boxes(pos, end, extrapolate, self.triangles, self.tree.lo, self.tree.hi)
+            self.tree.refit_in_place()
 
     # ------------------------------------------------------------------ the patch (compliance)
     def patch_nodes(self) -> np.ndarray:

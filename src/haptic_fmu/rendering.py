@@ -294,12 +294,5 @@ class WallCompliance:
 
     def map_local(self, local_vertices) -> None:
         """slot of every local model vertex (its index in ids, -1 when it has no compliance)."""
-        slot = np.full(local_vertices.size, -1, np.int64)
-        if self.ids.size:
-            order = np.argsort(self.ids)
-            sorted_ids = self.ids[order]
-            at = np.searchsorted(sorted_ids, local_vertices)
-            at = np.minimum(at, sorted_ids.size - 1)
-            hit = sorted_ids[at] == local_vertices
-            slot[hit] = order[at[hit]]
-        self.slot = slot
+        self.slot = np.empty(local_vertices.size, np.int64)
+        kernels.patch_slots(self.ids, local_vertices, self.slot)

@@ -597,3 +597,25 @@ def cholesky_succeeds(a, shift, work):
                 s -= work[i, k] * work[j, k]
             work[i, j] = s / d
     return True
+
+
+@njit(cache=True)
+def patch_slots(ids, local_vertices, slot):
+    """slot[k] = the index of local_vertices[k] in ids (distinct surface node ids, the patch's
+    few), -1 when it is not there."""
+    for k in range(local_vertices.shape[0]):
+        slot[k] = -1
+        v = local_vertices[k]
+        for i in range(ids.shape[0]):
+            if ids[i] == v:
+                slot[k] = i
+                break
+
+
+@njit(cache=True)
+def longest_row(ptr):
+    """The largest ptr[r + 1] - ptr[r] of a CSR row pointer (0 for no rows)."""
+    most = 0
+    for r in range(ptr.shape[0] - 1):
+        most = max(most, ptr[r + 1] - ptr[r])
+    return most
