@@ -309,6 +309,33 @@ def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, si
             assert echo_steps == []
 
 
+def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
+    """--realtime: what the observers do when the run starts (the progress bar's import of tqdm
+    took 6-7 ms) does not make the first haptic steps late."""
+    from orchestration.algorithm import MultirateAlgorithm
+    from orchestration.hosting import InProcessFmu
+    from orchestration.observers import RealtimePacing
+
+    class SlowStart:
+        def started(self, algorithm):
+            time.sleep(0.05)
+
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
+    scene = scene_from_dict(data, tmp_path)
+    pacing = RealtimePacing()
+    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: InProcessFmu(spec.name, spec.description),
+                                   [pacing, SlowStart()])
+    try:
+        algorithm.setup()
+        algorithm.initialize()
+        algorithm.run(lambda: 0.0)
+    finally:
+        algorithm.notify("finished")
+        algorithm.teardown()
+    assert len(pacing.lateness) == 100
+    assert pacing.lateness[0] < 0.025, pacing.lateness[:5]
+
+
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
 def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_path):
     """--realtime: this process keeps one CPU, the worker gets another, and this process has all
