@@ -266,15 +266,33 @@ class _StepTrace:
         self.events.append(("end", component.name, tick))
 
 
-@pytest.mark.parametrize("signal_hosting", ["out-of-process", "in-process"])
-def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, signal_hosting):
-    """A 1/30 s step in a worker runs while the 1 ms consumer goes on, and is collected once it is
-    done, before the consumer needs it (jacobi). In ticks of 1/3000 s the worker steps [0, 100],
-    [100, 200], ...; the consumer's steps [3, 6] ... [99, 102] need only the sample at 0, [102, 105]
-    the one at 100. The consumer's steps take 2 ms each here and the worker's almost nothing, so
-    the worker's result arrives a few consumer steps after its start, far ahead of the 33rd. In
-    process there is nothing to overlap."""
+def _run_signal_echo(synthetic_fmus, tmp_path, hosts: dict, observers: list) -> None:
+    """The signal -> echo scene (1/30 s producer, 1 ms consumer, hold, jacobi, 0.1 s) stepped by
+    the algorithm itself, each component on the host class ``hosts`` names."""
     from orchestration.algorithm import MultirateAlgorithm
+
+    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
+    scene = scene_from_dict(data, tmp_path)
+    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: hosts[spec.name](spec.name, spec.description),
+                                   observers)
+    try:
+        algorithm.setup()
+        algorithm.initialize()
+        algorithm.run(lambda: 0.0)
+    finally:
+        algorithm.notify("finished")
+        algorithm.teardown()
+
+
+@pytest.mark.parametrize("signal_hosting", ["out-of-process", "in-process"])
+def test_a_worker_step_starts_after_the_ticks_steps_and_is_collected_once_done(synthetic_fmus, tmp_path,
+                                                                                signal_hosting):
+    """A 1/30 s step in a worker is started after the 1 ms consumer's step of the same tick and
+    collected once it is done, before the consumer needs it (jacobi), not at the tick that needs
+    it. In ticks of 1/3000 s the worker steps [0, 100], [100, 200], ...; the consumer's steps
+    [3, 6] ... [99, 102] need only the sample at 0, [102, 105] the one at 100. The consumer's steps
+    take 2 ms each here and the worker's almost nothing, so its result arrives long before the
+    33rd consumer step. In process the producer simply steps first (its rank), done when it starts."""
     from orchestration.hosting import InProcessFmu
     from orchestration.worker import WorkerFmu
 
@@ -283,28 +301,21 @@ def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, si
             time.sleep(0.002)
             super().start_step(t, h, inputs)
 
-    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
-    scene = scene_from_dict(data, tmp_path)
-    hosts = {"signal": WorkerFmu if signal_hosting == "out-of-process" else InProcessFmu, "echo": SlowFmu}
     trace = _StepTrace()
-    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: hosts[spec.name](spec.name, spec.description),
-                                   [trace])
-    try:
-        algorithm.setup()
-        algorithm.initialize()
-        algorithm.run(lambda: 0.0)
-    finally:
-        algorithm.teardown()
+    hosts = {"signal": WorkerFmu if signal_hosting == "out-of-process" else InProcessFmu, "echo": SlowFmu}
+    _run_signal_echo(synthetic_fmus, tmp_path, hosts, [trace])
     events = trace.events
     for k in range(3):  # each of the worker's steps
         begin = events.index(("start", "signal", 100 * k))
         end = events.index(("end", "signal", 100 * (k + 1)))
-        echo_steps = [e for e in events[begin:end] if e[:2] == ("end", "echo")]
+        if signal_hosting == "out-of-process":  # the tick's consumer step first
+            assert events.index(("end", "echo", 3 * (100 * k // 3) + 3)) < begin
         needing = 3 * -(-100 * (k + 1) // 3)  # the first consumer step that reads the sample at 100 (k + 1)
         if needing < 300:  # the run ends at 300
             assert end < events.index(("start", "echo", needing))
+        echo_steps = [e for e in events[begin:end] if e[:2] == ("end", "echo")]
         if signal_hosting == "out-of-process":
-            assert 1 <= len(echo_steps) < 25, (k, echo_steps)
+            assert len(echo_steps) < 25, (k, echo_steps)
         else:
             assert echo_steps == []
 
@@ -312,7 +323,6 @@ def test_a_worker_steps_while_the_fast_loop_goes_on(synthetic_fmus, tmp_path, si
 def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
     """--realtime: what the observers do when the run starts (the progress bar's import of tqdm
     took 6-7 ms) does not make the first haptic steps late."""
-    from orchestration.algorithm import MultirateAlgorithm
     from orchestration.hosting import InProcessFmu
     from orchestration.observers import RealtimePacing
 
@@ -320,18 +330,8 @@ def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
         def started(self, algorithm):
             time.sleep(0.05)
 
-    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
-    scene = scene_from_dict(data, tmp_path)
     pacing = RealtimePacing()
-    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: InProcessFmu(spec.name, spec.description),
-                                   [pacing, SlowStart()])
-    try:
-        algorithm.setup()
-        algorithm.initialize()
-        algorithm.run(lambda: 0.0)
-    finally:
-        algorithm.notify("finished")
-        algorithm.teardown()
+    _run_signal_echo(synthetic_fmus, tmp_path, {"signal": InProcessFmu, "echo": InProcessFmu}, [pacing, SlowStart()])
     assert len(pacing.lateness) == 100
     assert pacing.lateness[0] < 0.025, pacing.lateness[:5]
 
@@ -340,7 +340,6 @@ def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
 def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_path):
     """--realtime: this process keeps one CPU, the worker gets another, and this process has all
     its CPUs back once the run is finished (the master notifies "finished" however a run ends)."""
-    from orchestration.algorithm import MultirateAlgorithm
     from orchestration.hosting import InProcessFmu
     from orchestration.observers import RealtimePacing
     from orchestration.worker import WorkerFmu
@@ -353,19 +352,8 @@ def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_p
             seen["master"] = os.sched_getaffinity(0)
             seen["worker"] = os.sched_getaffinity(algorithm.components["signal"].host.pid)
 
-    data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
-    scene = scene_from_dict(data, tmp_path)
-    hosts = {"signal": WorkerFmu, "echo": InProcessFmu}
     pacing = RealtimePacing()
-    algorithm = MultirateAlgorithm(scene, scene.duration, lambda spec: hosts[spec.name](spec.name, spec.description),
-                                   [pacing, Probe()])
-    try:
-        algorithm.setup()
-        algorithm.initialize()
-        algorithm.run(lambda: 0.0)
-    finally:
-        algorithm.notify("finished")
-        algorithm.teardown()
+    _run_signal_echo(synthetic_fmus, tmp_path, {"signal": WorkerFmu, "echo": InProcessFmu}, [pacing, Probe()])
     cpus = pacing.report()["cpus"]
     assert seen["master"] == {cpus["master"]} and seen["worker"] == {cpus["signal"]}
     assert cpus["master"] != cpus["signal"] and {cpus["master"], cpus["signal"]} <= before
