@@ -57,7 +57,7 @@ def test_refit_gives_every_node_the_box_of_its_primitives():
     tree = aabb.AABBTree.build(lo, lo + rng.uniform(0, 0.1, size=lo.shape))
     new_lo = lo + rng.normal(scale=0.3, size=lo.shape)
     new_hi = new_lo + rng.uniform(0, 0.2, size=lo.shape)
-    tree.refit(new_lo, new_hi, check=False)
+    tree.refit(new_lo, new_hi)
     for node in range(tree.n_nodes):
         prims = tree.order[tree.start[node]: tree.start[node] + tree.count[node]]
         np.testing.assert_array_equal(tree.node_lo[node], new_lo[prims].min(axis=0))
@@ -78,27 +78,36 @@ def test_refit_in_place_equals_refit():
 
 @pytest.mark.parametrize("reach", [0.0, 0.004])
 def test_tool_query_boxes_equal_the_numpy_reference(reach):
-    """The kernels' boxes are bit for bit those of aabb.point_boxes / segment_boxes with the
-    inside nodes' reach back along their entry normals (the numpy code they replaced)."""
+    """The kernels' boxes, and the validating wrappers aabb.point_boxes / segment_boxes over them,
+    are bit for bit the numpy code they replaced: the swept box inflated by the reach, for inside
+    nodes also around the point their entry normal and depth lead back to."""
     rng = np.random.default_rng(5)
     k = 31
-    tool0, tool1 = rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
+    tool0, tool1, tool2 = rng.normal(size=(k, 3)), rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
     inside = (rng.uniform(size=k) < 0.3).astype(np.int8)
     normal, depth = rng.normal(size=(k, 3)), rng.uniform(0, 0.01, size=2 * k - 1)  # depth: nodes, then segments
-    lo, hi = np.empty((k, 3)), np.empty((k, 3))
-    aabb_kernels.swept_point_boxes(tool0, tool1, reach, inside, normal, depth, lo, hi)
-    want_lo, want_hi = aabb.point_boxes(tool0, positions_end=tool1, radius=reach)
+
+    def inflated(lo, hi):
+        return (lo - reach, hi + reach) if reach > 0 else (lo, hi)
+
+    want_lo, want_hi = inflated(np.minimum(tool0, tool1), np.maximum(tool0, tool1))
+    np.testing.assert_array_equal(aabb.point_boxes(tool0, positions_end=tool1, radius=reach), (want_lo, want_hi))
+    np.testing.assert_array_equal(aabb.point_boxes(tool0, radius=reach), inflated(tool0, tool0))
     at = np.flatnonzero(inside)
     back = tool1[at] + normal[at] * depth[at, None]
     want_lo[at] = np.minimum(want_lo[at], back - reach)
     want_hi[at] = np.maximum(want_hi[at], back + reach)
+    lo, hi = np.empty((k, 3)), np.empty((k, 3))
+    aabb_kernels.swept_point_boxes(tool0, tool1, reach, inside, normal, depth, lo, hi)
     np.testing.assert_array_equal(lo, want_lo)
     np.testing.assert_array_equal(hi, want_hi)
-    seg_lo, seg_hi = np.empty((k - 1, 3)), np.empty((k - 1, 3))
-    aabb_kernels.polyline_segment_boxes(tool1, reach, seg_lo, seg_hi)
-    want_lo, want_hi = aabb.segment_boxes(tool1, radius=reach)
-    np.testing.assert_array_equal(seg_lo, want_lo)
-    np.testing.assert_array_equal(seg_hi, want_hi)
+
+    a, b, c, d = tool1[:-1], tool1[1:], tool2[:-1], tool2[1:]
+    np.testing.assert_array_equal(aabb.segment_boxes(tool1, radius=reach),
+                                  inflated(np.minimum(a, b), np.maximum(a, b)))
+    np.testing.assert_array_equal(
+        aabb.segment_boxes(tool1, positions_end=tool2, radius=reach),
+        inflated(np.minimum(np.minimum(a, b), np.minimum(c, d)), np.maximum(np.maximum(a, b), np.maximum(c, d))))
 
 
 def test_unsorted_query_finds_the_same_pairs():

@@ -88,36 +88,39 @@ def triangle_boxes(positions, triangles, positions_end=None, inflate=0.0):
     return _inflated(lo, hi, inflate)
 
 
-def segment_boxes(points, positions_end=None, radius=0.0, check=True):
+def segment_boxes(points, positions_end=None, radius=0.0):
     """Boxes of the k-1 segments of a polyline (e.g. a tool centerline), inflated by its radius.
 
-    check=False skips the validation for points the caller validated (finite (k, 3) float64)."""
-    if check:
-        points = _points_array("points", points, "polyline vertices in order, one row per vertex")
-        if points.shape[0] < 2:
-            raise AABBInputError(f"points must hold at least 2 polyline vertices (got {points.shape[0]})")
-        radius = _margin("radius", radius)
-        end = _end_positions(positions_end, points)
-    else:
-        end = positions_end
-    lo, hi = np.minimum(points[:-1], points[1:]), np.maximum(points[:-1], points[1:])
-    if end is not None:
-        lo = np.minimum(lo, np.minimum(end[:-1], end[1:]))
-        hi = np.maximum(hi, np.maximum(end[:-1], end[1:]))
-    return _inflated(lo, hi, radius)
+    Validating wrapper of `aabb_kernels.polyline_segment_boxes` (the kernel the contact model
+    queries its tree with); swept to positions_end, the union of both ends' boxes."""
+    points = np.ascontiguousarray(_points_array("points", points, "polyline vertices in order, one row per vertex"))
+    if points.shape[0] < 2:
+        raise AABBInputError(f"points must hold at least 2 polyline vertices (got {points.shape[0]})")
+    radius = _margin("radius", radius)
+    end = _end_positions(positions_end, points)
+    lo, hi = np.empty((points.shape[0] - 1, 3)), np.empty((points.shape[0] - 1, 3))
+    aabb_kernels.polyline_segment_boxes(points, radius, lo, hi)
+    if end is not None:  # min(a - r, b - r) is min(a, b) - r exactly: rounding is monotonic
+        end_lo, end_hi = np.empty_like(lo), np.empty_like(hi)
+        aabb_kernels.polyline_segment_boxes(np.ascontiguousarray(end), radius, end_lo, end_hi)
+        np.minimum(lo, end_lo, out=lo)
+        np.maximum(hi, end_hi, out=hi)
+    return lo, hi
 
 
-def point_boxes(points, positions_end=None, radius=0.0, check=True):
+def point_boxes(points, positions_end=None, radius=0.0):
     """Boxes of points (swept to positions_end when given), inflated by radius.
 
-    check=False: as for `segment_boxes`."""
-    if check:
-        points = _points_array("points", points, "point positions, one row per point")
-        radius = _margin("radius", radius)
-        positions_end = _end_positions(positions_end, points)
-    if positions_end is None:
-        return _inflated(points.copy(), points.copy(), radius)
-    return _inflated(np.minimum(points, positions_end), np.maximum(points, positions_end), radius)
+    Validating wrapper of `aabb_kernels.swept_point_boxes` (the kernel the contact model queries
+    its tree with), with no point reaching back."""
+    points = np.ascontiguousarray(_points_array("points", points, "point positions, one row per point"))
+    radius = _margin("radius", radius)
+    end = _end_positions(positions_end, points)
+    end = points if end is None else np.ascontiguousarray(end)
+    k = points.shape[0]
+    lo, hi = np.empty((k, 3)), np.empty((k, 3))
+    aabb_kernels.swept_point_boxes(points, end, radius, np.zeros(k, np.int8), points, np.zeros(k), lo, hi)
+    return lo, hi
 
 
 def spline_swept_boxes(p0, p1, v0, v1, dt, triangles, inflate=0.0):
@@ -211,20 +214,15 @@ class AABBTree:
     def n_primitives(self):
         return self.lo.shape[0]
 
-    def refit(self, lo, hi, check=True):
-        """New boxes for the same primitives (same topology), bottom-up in O(m).
-
-        check=False skips the validation for boxes the caller made from validated positions
-        (the contact model's, at every tissue frame): (m, 3) float64 with finite lo <= hi."""
-        if check:
-            lo, hi = _boxes_pair(lo, hi, "AABBTree.refit")
+    def refit(self, lo, hi):
+        """New boxes for the same primitives (same topology), bottom-up in O(m)."""
+        lo, hi = _boxes_pair(lo, hi, "AABBTree.refit")
         if lo.shape[0] != self.n_primitives:
             raise AABBInputError(f"AABBTree.refit got {lo.shape[0]} boxes but the tree has {self.n_primitives}: "
                                  f"refit needs the same primitives; build a new tree if the mesh changed")
         self.lo[...] = lo
         self.hi[...] = hi
-        aabb_kernels.refit_tree(self.lo, self.hi, self.order, self.n_nodes, self.node_lo, self.node_hi,
-                                self.left, self.right, self.start, self.count)
+        self.refit_in_place()
 
     def query_tree(self, other):
         """(k, 2) int64 pairs (i of self, j of other) whose primitive boxes overlap, sorted."""
@@ -243,15 +241,16 @@ class AABBTree:
         return _collect(run, 4 * (self.n_primitives + other.n_primitives))
 
     def refit_in_place(self):
-        """`refit` for boxes written straight into ``self.lo``, ``self.hi`` (no copy; the caller
-        makes them from validated positions, as for ``refit(..., check=False)``)."""
+        """`refit` for boxes written straight into ``self.lo``, ``self.hi`` (no copy, no check: the
+        contact model makes them from validated positions at every tissue frame)."""
         aabb_kernels.refit_tree(self.lo, self.hi, self.order, self.n_nodes, self.node_lo, self.node_hi,
                                 self.left, self.right, self.start, self.count)
 
     def query_boxes(self, lo, hi, check=True, sort=True):
         """(k, 2) int64 pairs (i primitive of self, j query box) whose boxes overlap, sorted.
 
-        check=False: as for `refit`, and lo, hi C-contiguous. sort=False: the same pairs in the
+        check=False skips the validation for boxes the caller made from validated positions
+        ((k, 3) C-contiguous float64, finite lo <= hi). sort=False: the same pairs in the
         traversal's order (for a caller that groups them itself)."""
         if check:
             lo, hi = _boxes_pair(lo, hi, "AABBTree.query_boxes")

@@ -15,20 +15,9 @@ STACK_SIZE = 256
 
 
 @njit(cache=True)
-def _union_of_primitives(lo, hi, order, s, c, node_lo, node_hi, node):
-    for a in range(3):
-        node_lo[node, a] = np.inf
-        node_hi[node, a] = -np.inf
-    for k in range(s, s + c):
-        p = order[k]
-        for a in range(3):
-            node_lo[node, a] = min(node_lo[node, a], lo[p, a])
-            node_hi[node, a] = max(node_hi[node, a], hi[p, a])
-
-
-@njit(cache=True)
 def build_tree(lo, hi, leaf_size, order, node_lo, node_hi, left, right, start, count):
-    """Top-down median split on the widest centroid axis. Arrays sized for 2m nodes; returns n_nodes."""
+    """Top-down median split on the widest centroid axis, then the node boxes by `refit_tree`.
+    Arrays sized for 2m nodes; returns n_nodes."""
     m = lo.shape[0]
     for i in range(m):
         order[i] = i
@@ -41,7 +30,6 @@ def build_tree(lo, hi, leaf_size, order, node_lo, node_hi, left, right, start, c
     while node < n_nodes:
         s = start[node]
         c = count[node]
-        _union_of_primitives(lo, hi, order, s, c, node_lo, node_hi, node)
         if c <= leaf_size:
             left[node] = -1
             right[node] = -1
@@ -77,6 +65,7 @@ def build_tree(lo, hi, leaf_size, order, node_lo, node_hi, left, right, start, c
         count[n_nodes + 1] = c - half
         n_nodes += 2
         node += 1
+    refit_tree(lo, hi, order, n_nodes, node_lo, node_hi, left, right, start, count)  # the boxes, bottom-up
     return n_nodes
 
 
