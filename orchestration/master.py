@@ -208,6 +208,8 @@ class Simulation:
                               **{k: str(v) for k, v in recording.files.items() if not k.endswith("]")}}
         if recording.surface_errors:  # frames the surface writer could not write (a full disk)
             summary["results"]["surface_errors"] = recording.surface_errors
+        if recording.row_errors:  # rows the row writer could not write (a full disk)
+            summary["results"]["row_errors"] = recording.row_errors
         return summary
 
 

@@ -27,13 +27,18 @@ class Recording:
         self.surfaces = list(scene.surfaces) if surfaces else []
         self.recorder = None
         self._recorded = {name: list(ports) for name, ports in scene.record.items()}
-        # Surface frames are written by a process of their own, started now: its imports (about
-        # half a second) run beside the FMUs' set-up, not into the first steps.
-        self._surface_writer = None
+        # Surface frames and the CSV rows' text are written by processes of their own, started
+        # now: their start-up (half a second for the surface writer's imports) runs beside the
+        # FMUs' set-up, not into the first steps.
+        self._surface_writer = self._row_writer = None
         if self.surfaces:
             from .surface_writer import SurfaceWriter
 
             self._surface_writer = SurfaceWriter(self.out_dir)
+        if self._recorded:
+            from .row_writer import RowWriter
+
+            self._row_writer = RowWriter()
 
     def ports(self, component: str) -> list[str]:
         ports = list(self._recorded.get(component, []))
@@ -46,7 +51,7 @@ class Recording:
         from .recording import Recorder
 
         self.seconds = algorithm.seconds
-        self.recorder = Recorder(self.out_dir, surface_writer=self._surface_writer)
+        self.recorder = Recorder(self.out_dir, surface_writer=self._surface_writer, row_writer=self._row_writer)
         for name, ports in self._recorded.items():
             spec = self.scene.components[name]
             self.recorder.add_stream(name, [(p, spec.ports[p].size, spec.ports[p].unit) for p in ports])
@@ -75,9 +80,11 @@ class Recording:
 
     def close(self) -> None:
         if self.recorder is not None:
-            self.recorder.close()  # closes the surface writer too, once every frame is on disk
-        elif self._surface_writer is not None:  # the run ended before recording began
-            self._surface_writer.close()
+            self.recorder.close()  # closes the writer processes too, once everything is on disk
+        else:  # the run ended before recording began
+            for writer in (self._surface_writer, self._row_writer):
+                if writer is not None:
+                    writer.close()
 
     @property
     def surface_errors(self) -> list[str]:
@@ -85,9 +92,15 @@ class Recording:
         return self.recorder.surface_errors if self.recorder is not None else []
 
     @property
+    def row_errors(self) -> list[str]:
+        """What the row writer could not write (known once closed)."""
+        return self.recorder.row_errors if self.recorder is not None else []
+
+    @property
     def processes(self) -> dict[str, int]:
-        """Helper processes of the run by name (the surface writer), for the real-time pacing."""
-        return {} if self._surface_writer is None else {"surface writer": self._surface_writer.pid}
+        """Helper processes of the run by name (the writers), for the real-time pacing."""
+        return {name: writer.pid for name, writer in (("surface writer", self._surface_writer),
+                                                      ("row writer", self._row_writer)) if writer is not None}
 
     @property
     def files(self) -> dict:
@@ -202,7 +215,7 @@ class RealtimePacing:
 
     def initialized(self, algorithm) -> None:
         others = {c.name: c.host.pid for c in algorithm.ordered if getattr(c.host, "pid", None) is not None}
-        for observer in algorithm.observers:  # helper processes (the surface writer)
+        for observer in algorithm.observers:  # helper processes (the writers)
             others.update(getattr(observer, "processes", {}))
         try:
             allowed = sorted(os.sched_getaffinity(0))

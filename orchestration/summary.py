@@ -58,4 +58,6 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
                  "PNG plots, surfaces as .pvd (ParaView)")
     for error in summary["results"].get("surface_errors", [])[:5]:
         lines.append(f"  surface frame not written: {error}")
+    for error in summary["results"].get("row_errors", [])[:5]:
+        lines.append(f"  CSV rows not written: {error}")
     return "\n".join(lines)

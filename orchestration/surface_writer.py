@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .stopping import STOP_SIGNALS, start_shielded
+from .stopping import STOP_SIGNALS, set_process_name, start_shielded
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +147,7 @@ def _serve(conn, out_dir: str) -> None:
     for signum in STOP_SIGNALS:
         signal.signal(signum, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    set_process_name("surface-writer")
     _yield_to_the_run()
     import meshio  # noqa: F401  (now, not at the first frame, which the run is waiting to see written)
 

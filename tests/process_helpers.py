@@ -7,7 +7,8 @@ from pathlib import Path
 
 
 def group_members(pgid: int) -> list[str]:
-    """Processes still in the run's process group (its workers, the resource tracker)."""
+    """Processes still in the run's process group (its workers, the writers, the resource tracker):
+    ``"pid: [name] command line"``."""
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -15,11 +16,12 @@ def group_members(pgid: int) -> list[str]:
         try:
             stat = (entry / "stat").read_text()
             cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            name = (entry / "comm").read_text().strip()
         except OSError:
             continue
         fields = stat[stat.rindex(")") + 2:].split()
         if int(fields[2]) == pgid and fields[0] != "Z":
-            found.append(f"{entry.name}: {cmdline[:120]}")
+            found.append(f"{entry.name}: [{name}] {cmdline[:120]}")
     return found
 
 

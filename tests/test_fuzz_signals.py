@@ -268,7 +268,7 @@ def test_a_stopped_worker_ends_the_run_as_failed_after_the_scene_timeout(built, 
                 (tmp_path / "out.running" / "contact.csv").stat().st_size < 20000:
             assert proc.poll() is None and time.monotonic() < deadline
             time.sleep(0.05)
-        workers = [line for line in group_members(proc.pid) if "spawn_main" in line]
+        workers = [line for line in group_members(proc.pid) if "spawn_main" in line and "-writer]" not in line]
         assert len(workers) == 1, workers
         worker = int(workers[0].split(":")[0])
         os.kill(worker, signal.SIGSTOP)

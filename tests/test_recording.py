@@ -72,6 +72,8 @@ def test_bad_writes_are_rejected_with_the_port_named(tmp_path):
         rec.add_stream("c", [("f", 3, "N")])
         with pytest.raises(RecordingError, match=r"c\.f .*expected 3 values, got 2"):
             rec.write("c", 0.0, {"f": np.zeros(2)})
+        with pytest.raises(RecordingError, match=r"c\.f .*expected 3 values, got 1"):  # not spread over 3
+            rec.write("c", 0.0, {"f": np.ones(1)})
         with pytest.raises(RecordingError, match="no value for recorded port 'f'"):
             rec.write("c", 0.0, {"g": np.zeros(3)})
         with pytest.raises(RecordingError, match="add_stream\\('d'"):
@@ -319,6 +321,88 @@ def test_a_frame_the_writer_process_cannot_write_is_reported_and_the_others_are_
     assert len(rec.surface_errors) == 1 and "wall" in rec.surface_errors[0]
     assert "surface frames: wall" in caplog.text
     assert [p.name for p in blocked.glob("*.vtu")] == ["wall_00000.vtu"]      # the frame before is kept
+
+
+def _awkward_rows(rec):
+    rec.add_stream("c", [("x", 1, "m"), ("f", 3, "N"), ("n", 1, None)])
+    rng = np.random.default_rng(11)
+    for k in range(1000):
+        x = AWKWARD[k % AWKWARD.size] if k < 50 else rng.standard_normal() * 10.0 ** rng.integers(-300, 300)
+        rec.write("c", k * 1e-3, {"x": np.array([x]), "f": rng.standard_normal(3) * 10.0 ** rng.integers(-20, 20, 3),
+                                  "n": np.array([k], dtype=np.int32)})
+        if k % 300 == 0:
+            rec.flush()  # several blocks, in order
+
+
+def test_rows_written_by_the_row_writer_process_are_the_bytes_written_in_process(tmp_path):
+    from orchestration.row_writer import RowWriter
+
+    writer = RowWriter()
+    pid = writer.pid
+    with Recorder(tmp_path / "a") as rec:
+        _awkward_rows(rec)
+    with Recorder(tmp_path / "b", row_writer=writer) as rec:
+        _awkward_rows(rec)   # close() waited for every row
+    text = (tmp_path / "a" / "c.csv").read_bytes()
+    assert text.count(b"\n") == 1001 and b"nan" in text and b"-0.0," in text
+    assert (tmp_path / "b" / "c.csv").read_bytes() == text
+    with pytest.raises(ProcessLookupError):  # the writer has ended
+        os.kill(pid, 0)
+
+
+def test_rows_sent_before_the_recording_process_dies_are_all_written(tmp_path):
+    """The recording process dies right after handing its rows on (no close, no atexit): the row
+    writer writes every row it was sent and ends; Ctrl-C sent to the group does not stop it first."""
+    script = textwrap.dedent(f"""
+        import os, signal
+        import numpy as np
+        from orchestration.recording import Recorder
+        from orchestration.row_writer import RowWriter
+        if __name__ == "__main__":
+            writer = RowWriter()
+            rec = Recorder({str(tmp_path)!r}, flush_interval=30.0, row_writer=writer)
+            rec.add_stream("c", [("wall", 1, "s"), ("v", 3, None)])
+            for k in range(5000):
+                rec.write("c", k * 1e-3, {{"wall": np.zeros(1), "v": np.array([k, k / 3, -k * 1e-300])}})
+            rec.flush()
+            print(writer.pid, flush=True)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            os.killpg(0, signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120,
+                          start_new_session=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    pid = int(proc.stdout.split()[0])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        raise AssertionError("the writer outlived the recording process by 30 s")
+    t, cols = read_stream(tmp_path / "c.csv")
+    assert t.size == 5000
+    assert_complete_rows(t, cols)
+
+
+def test_rows_the_row_writer_cannot_write_are_reported_and_the_others_are_kept(tmp_path):
+    from orchestration.row_writer import RowWriter
+
+    writer = RowWriter()
+    good = tmp_path / "good.csv"
+    good.write_text("")
+    writer.add_stream("good", good, 2)
+    writer.add_stream("lost", tmp_path / "no such folder" / "lost.csv", 2)
+    for k in range(3):
+        writer.write("good", np.array([[k, 0.5], [k, 0.25]]).tobytes())
+        writer.write("lost", np.array([k, 1.0]).tobytes())
+    errors = writer.close()
+    assert len(errors) == 4 and all(e.startswith("lost: ") for e in errors)  # the open, then each block
+    assert "FileNotFoundError" in errors[0]
+    assert good.read_text().splitlines() == [f"{k}.0,{v}" for k in range(3) for v in (0.5, 0.25)]
 
 
 def test_summary_json_round_trip(tmp_path):
