@@ -264,10 +264,15 @@ class InProcessFmu:
             port = ports.get(name)
             if port is None:
                 raise self._unconfigured_input(name)
-            value = np.asarray(value, dtype=np.float64)
-            if value.size != port.size:
-                raise ValueError(f"{self.name}.{name} expects {port.size} value(s), got {value.size}")
-            np.copyto(port.slot, value.reshape(port.size))
+            try:  # a flat array of the port's size (what the master routes): copied as it is
+                if value.size != port.size:
+                    raise ValueError
+                port.slot[:] = value
+            except (AttributeError, ValueError, TypeError):  # anything else converted, or refused
+                value = np.asarray(value, dtype=np.float64)
+                if value.size != port.size:
+                    raise ValueError(f"{self.name}.{name} expects {port.size} value(s), got {value.size}") from None
+                np.copyto(port.slot, value.reshape(port.size))
             push(port)
 
     def get_outputs(self) -> dict[str, np.ndarray]:

@@ -167,6 +167,8 @@ def test_every_value_type_round_trips(kind, synthetic_fmus):
             host.set_inputs({"b": np.array([0.5])})
         with pytest.raises(ValueError, match="expects 3 value"):
             host.set_inputs({"v": np.zeros(2)})
+        with pytest.raises(ValueError, match="expects 3 value"):  # one value is not spread over three
+            host.set_inputs({"v": np.ones(1)})
         with pytest.raises(ValueError, match="not among the configured inputs"):
             host.set_inputs({"last_u": np.zeros(1)})
 
