@@ -7,27 +7,20 @@ row of the default scene's catheter and contact, two rows per millisecond of the
 each block, as bytes, to this process, which makes the text and appends it to the CSV file.
 
 Nothing is lost: blocks are written in the order they were sent, always as whole lines;
-:meth:`RowWriter.close` waits until every block is on disk. When the run's process dies, the
-writer reads the blocks still in the pipe, writes them and exits; Ctrl-C and SIGTERM sent to the
-whole process group do not stop it before that. Unlike the surface writer it runs at normal
-priority: the rows of a run that is still going reach the disk within the recorder's flush
-interval (about 2 % of one CPU for the default scene).
+:meth:`RowWriter.close` waits until every block is on disk, and a run's process that dies leaves
+the writer to write what it was sent (:mod:`.helper_process`). Unlike the surface writer it runs
+at normal priority: the rows of a run that is still going reach the disk within the recorder's
+flush interval (about 2 % of one CPU for the default scene).
 """
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
-import signal
 from pathlib import Path
 
-from .stopping import STOP_SIGNALS, set_process_name, start_shielded
+from .helper_process import HelperProcess, begin_helper
 
 log = logging.getLogger(__name__)
-
-#: How long close() waits for the blocks still queued (a second of the default scene's rows takes
-#: about 15 ms to write).
-CLOSE_TIMEOUT_S = 600.0
 
 _float_repr = float.__repr__  # exact shortest round-trip text
 
@@ -58,60 +51,28 @@ class RowWriter:
     """
 
     def __init__(self):
-        context = multiprocessing.get_context("spawn")
-        self._conn, child_end = context.Pipe(duplex=True)
-        self._process = context.Process(target=_serve, args=(child_end,), name="row-writer", daemon=True)
-        start_shielded(self._process)  # _serve ignores both: it ends when this process closes the pipe
-        child_end.close()
-        self._send_error: str | None = None
-        self._closed = False
+        self._helper = HelperProcess("row writer", _serve)
 
     @property
     def pid(self) -> int:
-        return self._process.pid
+        return self._helper.pid
 
     def add_stream(self, name: str, path: Path, n_values: int) -> None:
         """Rows named ``name`` have ``n_values`` floats and are appended to ``path``."""
-        self._send(("stream", name, str(path), int(n_values)))
+        self._helper.send(("stream", name, str(path), int(n_values)))
 
     def write(self, name: str, rows: bytes) -> None:
         """Append whole rows (float64, native byte order, row after row) to stream ``name``."""
-        self._send(("rows", name, rows))
-
-    def _send(self, message) -> None:
-        if self._send_error is None:
-            try:
-                self._conn.send(message)
-            except (OSError, ValueError) as exc:  # the writer is gone: close() reports it
-                self._send_error = f"{type(exc).__name__}: {exc}"
+        self._helper.send(("rows", name, rows))
 
     def close(self) -> list[str]:
         """Wait until every block sent is written; the writer's errors, if any. Idempotent."""
-        if self._closed:
-            return []
-        self._closed = True
-        errors = [f"the row writer process ended before writing every row (exit code {self._process.exitcode})"]
-        try:
-            self._conn.send(("close",))
-            if self._conn.poll(CLOSE_TIMEOUT_S):
-                errors = self._conn.recv()
-        except (OSError, EOFError) as exc:
-            errors[0] += f": {self._send_error or exc}"
-        finally:
-            self._conn.close()
-            self._process.join(timeout=5)
-            if self._process.is_alive():
-                self._process.kill()
-                self._process.join()
-        return errors
+        return self._helper.close("row")
 
 
 def _serve(conn) -> None:
     """The writer's loop: blocks in the order sent, until "close" or until the run's process is gone."""
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-    set_process_name("row-writer")
+    begin_helper("row-writer")
     streams: dict[str, tuple[int, int]] = {}  # name -> (fd, n_values)
     errors: list[str] = []
     try:

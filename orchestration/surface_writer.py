@@ -8,29 +8,23 @@ process instead (one pipe message of the positions) and goes on.
 
 Nothing is lost: frames are written in the order they were sent, each file and the rewritten
 ``.pvd`` atomically (:func:`write_frame`); :meth:`SurfaceWriter.close` waits until every frame is
-on disk. When the run's process dies, the writer reads the frames still in the pipe, writes them
-and exits; Ctrl-C and SIGTERM sent to the whole process group do not stop it before that.
+on disk, and a run's process that dies leaves the writer to write what it was sent
+(:mod:`.helper_process`).
 """
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import queue
-import signal
 import threading
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
-from .stopping import STOP_SIGNALS, set_process_name, start_shielded
+from .helper_process import HelperProcess, begin_helper
 
 log = logging.getLogger(__name__)
-
-#: How long close() waits for the frames still queued (a frame takes ~10 ms; a run sends a few
-#: hundred, and with every CPU busy the writer gets little time until the run ends).
-CLOSE_TIMEOUT_S = 600.0
 
 
 def write_frame(frame: Path, pvd: Path, out_dir: Path, frames: list, t: float, positions: np.ndarray,
@@ -80,12 +74,7 @@ class SurfaceWriter:
     """
 
     def __init__(self, out_dir: Path):
-        context = multiprocessing.get_context("spawn")
-        self._conn, child_end = context.Pipe(duplex=True)
-        self._process = context.Process(target=_serve, args=(child_end, str(out_dir)), name="surface-writer",
-                                        daemon=True)
-        start_shielded(self._process)  # _serve ignores both: it ends when this process closes the pipe
-        child_end.close()
+        self._helper = HelperProcess("surface writer", _serve, str(out_dir))
         # A frame (64 KB for the default wall) fills the pipe: sending it blocks until the writer
         # reads, and the writer runs only on an idle CPU. Sent from the run's thread, the default
         # scene's 1 kHz loop spent 0.3-0.4 s of its 1.5 s waiting in these sends (measured); this
@@ -93,12 +82,11 @@ class SurfaceWriter:
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._sender = threading.Thread(target=self._send_all, name="surface-sender", daemon=True)
         self._sender.start()
-        self._send_error: str | None = None
         self._closed = False
 
     @property
     def pid(self) -> int:
-        return self._process.pid
+        return self._helper.pid
 
     def add_series(self, name: str, triangles: np.ndarray, pvd: Path) -> None:
         self._outbox.put(("series", name, triangles, str(pvd)))
@@ -112,11 +100,7 @@ class SurfaceWriter:
             message = self._outbox.get()
             if message is None:
                 return
-            if self._send_error is None:
-                try:
-                    self._conn.send(message)
-                except (OSError, ValueError) as exc:  # the writer is gone: close() reports it
-                    self._send_error = f"{type(exc).__name__}: {exc}"
+            self._helper.send(message)
 
     def close(self) -> list[str]:
         """Wait until every frame sent is written; the writer's errors, if any. Idempotent."""
@@ -125,29 +109,12 @@ class SurfaceWriter:
         self._closed = True
         self._outbox.put(None)
         self._sender.join()
-        errors = [f"the surface writer process ended before writing every frame (exit code "
-                  f"{self._process.exitcode})"]
-        try:
-            self._conn.send(("close",))
-            if self._conn.poll(CLOSE_TIMEOUT_S):
-                errors = self._conn.recv()
-        except (OSError, EOFError) as exc:
-            errors[0] += f": {self._send_error or exc}"
-        finally:
-            self._conn.close()
-            self._process.join(timeout=5)
-            if self._process.is_alive():
-                self._process.kill()
-                self._process.join()
-        return errors
+        return self._helper.close("frame")
 
 
 def _serve(conn, out_dir: str) -> None:
     """The writer's loop: frames in the order sent, until "close" or until the run's process is gone."""
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-    set_process_name("surface-writer")
+    begin_helper("surface-writer")
     _yield_to_the_run()
     import meshio  # noqa: F401  (now, not at the first frame, which the run is waiting to see written)
 
