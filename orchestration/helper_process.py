@@ -7,10 +7,14 @@ loop ends at end of file); Ctrl-C and SIGTERM sent to the group do not stop it b
 """
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import signal
+from typing import Callable
 
 from .stopping import STOP_SIGNALS, set_process_name, start_shielded
+
+log = logging.getLogger(__name__)
 
 #: How long close() waits for the work still queued (a writer that ran only on idle CPUs may have
 #: most of a run's work left when the run ends).
@@ -20,8 +24,8 @@ CLOSE_TIMEOUT_S = 600.0
 class HelperProcess:
     """``target(conn, *args)`` in a process of its own, ``send`` per message, ``close`` at the end.
 
-    The target serves messages until ``("close",)``, to which it answers with its list of errors,
-    or until end of file. ``label`` names the helper in messages ("row writer").
+    The target calls :func:`begin_helper`, then :func:`serve`. ``label`` names the helper in
+    messages ("row writer").
     """
 
     def __init__(self, label: str, target, *args):
@@ -76,3 +80,24 @@ def begin_helper(name: str) -> None:
         signal.signal(signum, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     set_process_name(name)
+
+
+def serve(conn, label: str, handle: Callable[[tuple], None]) -> None:
+    """A helper's loop: ``handle`` each message in the order sent, until ``("close",)`` (answered with
+    the errors met) or until the run's process is gone (end of file: everything it sent is done).
+    A message that fails is an error, logged and kept, and the loop goes on (the next may succeed:
+    a disk that was full)."""
+    errors: list[str] = []
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return
+        if message[0] == "close":
+            conn.send(errors)
+            return
+        try:
+            handle(message)
+        except Exception as exc:
+            errors.append(f"{message[1]}: {type(exc).__name__}: {exc}")
+            log.error("%s: %s", label, errors[-1])

@@ -14,13 +14,10 @@ flush interval (about 2 % of one CPU for the default scene).
 """
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
-from .helper_process import HelperProcess, begin_helper
-
-log = logging.getLogger(__name__)
+from .helper_process import HelperProcess, begin_helper, serve
 
 _float_repr = float.__repr__  # exact shortest round-trip text
 
@@ -74,28 +71,18 @@ def _serve(conn) -> None:
     """The writer's loop: blocks in the order sent, until "close" or until the run's process is gone."""
     begin_helper("row-writer")
     streams: dict[str, tuple[int, int]] = {}  # name -> (fd, n_values)
-    errors: list[str] = []
+
+    def handle(message: tuple) -> None:
+        if message[0] == "stream":
+            _, name, path, n_values = message
+            streams[name] = (os.open(path, os.O_WRONLY | os.O_APPEND), n_values)
+        else:
+            _, name, rows = message
+            fd, n_values = streams[name]
+            write_all(fd, format_rows(memoryview(rows).cast("d").tolist(), n_values).encode("ascii"))
+
     try:
-        while True:
-            try:
-                message = conn.recv()
-            except (EOFError, OSError):  # the run's process is gone: everything it sent is written
-                return
-            kind = message[0]
-            if kind == "close":
-                conn.send(errors)
-                return
-            try:
-                if kind == "stream":
-                    _, name, path, n_values = message
-                    streams[name] = (os.open(path, os.O_WRONLY | os.O_APPEND), n_values)
-                else:
-                    _, name, rows = message
-                    fd, n_values = streams[name]
-                    write_all(fd, format_rows(memoryview(rows).cast("d").tolist(), n_values).encode("ascii"))
-            except Exception as exc:  # e.g. a full disk: say so, keep serving (the next block may fit)
-                errors.append(f"{message[1]}: {type(exc).__name__}: {exc}")
-                log.error("row writer: %s", errors[-1])
+        serve(conn, "row writer", handle)
     finally:
         for fd, _ in streams.values():
             os.close(fd)

@@ -13,7 +13,6 @@ on disk, and a run's process that dies leaves the writer to write what it was se
 """
 from __future__ import annotations
 
-import logging
 import os
 import queue
 import threading
@@ -22,9 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .helper_process import HelperProcess, begin_helper
-
-log = logging.getLogger(__name__)
+from .helper_process import HelperProcess, begin_helper, serve
 
 
 def write_frame(frame: Path, pvd: Path, out_dir: Path, frames: list, t: float, positions: np.ndarray,
@@ -120,24 +117,14 @@ def _serve(conn, out_dir: str) -> None:
 
     out = Path(out_dir)
     series: dict[str, tuple] = {}
-    errors: list[str] = []
-    while True:
-        try:
-            message = conn.recv()
-        except (EOFError, OSError):  # the run's process is gone: everything it sent is written
-            return
-        kind = message[0]
-        if kind == "close":
-            conn.send(errors)
-            return
-        try:
-            if kind == "series":
-                _, name, triangles, pvd = message
-                series[name] = (triangles, Path(pvd), [])
-            else:
-                _, name, frame, t, positions, point_data = message
-                triangles, pvd, frames = series[name]
-                write_frame(Path(frame), pvd, out, frames, t, positions, triangles, point_data)
-        except Exception as exc:  # e.g. a full disk: say so, keep serving (the next frame may fit)
-            errors.append(f"{message[1]}: {type(exc).__name__}: {exc}")
-            log.error("surface writer: %s", errors[-1])
+
+    def handle(message: tuple) -> None:
+        if message[0] == "series":
+            _, name, triangles, pvd = message
+            series[name] = (triangles, Path(pvd), [])
+        else:
+            _, name, frame, t, positions, point_data = message
+            triangles, pvd, frames = series[name]
+            write_frame(Path(frame), pvd, out, frames, t, positions, triangles, point_data)
+
+    serve(conn, "surface writer", handle)

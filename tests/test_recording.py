@@ -259,6 +259,32 @@ def test_surface_frames_written_by_the_writer_process_equal_those_written_in_pro
         os.kill(pid, 0)
 
 
+#: The end of a recording script: Ctrl-C to the whole process group (which the script ignores),
+#: then SIGKILL to itself: no close, no atexit.
+KILLED_WITH_THE_GROUP_INTERRUPTED = textwrap.indent(textwrap.dedent("""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.killpg(0, signal.SIGINT)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""), " " * 4)
+
+
+def _run_until_killed_and_wait_for_the_writer(script: str) -> None:
+    """Run ``script`` (it prints its writer's pid, then kills itself) in a session of its own;
+    return once the writer process has ended, at most 30 s later."""
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120,
+                          start_new_session=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    pid = int(proc.stdout.split()[0])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.05)
+    raise AssertionError("the writer outlived the recording process by 30 s")
+
+
 def test_surface_frames_sent_before_the_recording_process_dies_are_all_written(tmp_path):
     """SIGKILL right after the last frame is queued: the writer writes every frame it was sent
     and ends; Ctrl-C sent to the group does not stop it first."""
@@ -278,23 +304,8 @@ def test_surface_frames_sent_before_the_recording_process_dies_are_all_written(t
             while writer._outbox.qsize():  # every frame handed to the pipe
                 time.sleep(0.001)
             print(writer.pid, flush=True)
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            os.killpg(0, signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGKILL)
-    """)
-    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120,
-                          start_new_session=True)
-    assert proc.returncode == -signal.SIGKILL, proc.stderr
-    pid = int(proc.stdout.split()[0])
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            break
-        time.sleep(0.05)
-    else:
-        raise AssertionError("the writer outlived the recording process by 30 s")
+    """) + KILLED_WITH_THE_GROUP_INTERRUPTED
+    _run_until_killed_and_wait_for_the_writer(script)
     frames = sorted((tmp_path / "wall").glob("*.vtu"))
     assert len(frames) == 20
     assert np.all(meshio.read(frames[-1]).points == 19.0)
@@ -366,23 +377,8 @@ def test_rows_sent_before_the_recording_process_dies_are_all_written(tmp_path):
                 rec.write("c", k * 1e-3, {{"wall": np.zeros(1), "v": np.array([k, k / 3, -k * 1e-300])}})
             rec.flush()
             print(writer.pid, flush=True)
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            os.killpg(0, signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGKILL)
-    """)
-    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120,
-                          start_new_session=True)
-    assert proc.returncode == -signal.SIGKILL, proc.stderr
-    pid = int(proc.stdout.split()[0])
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            break
-        time.sleep(0.05)
-    else:
-        raise AssertionError("the writer outlived the recording process by 30 s")
+    """) + KILLED_WITH_THE_GROUP_INTERRUPTED
+    _run_until_killed_and_wait_for_the_writer(script)
     t, cols = read_stream(tmp_path / "c.csv")
     assert t.size == 5000
     assert_complete_rows(t, cols)
