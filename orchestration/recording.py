@@ -11,7 +11,7 @@ killed keeps everything up to that point:
   elsewhere; without a row writer by the writing call too), always as whole lines, and at
   :meth:`Recorder.close`, which is also registered with :mod:`atexit`. With a ``row_writer``
   (:mod:`.row_writer`) a process of its own makes the text and writes it, so the 1 kHz loop only
-  copies a row's floats (2-3 us instead of 8-10); without one, the flush writes the text itself;
+  copies a row's floats (3-5 us instead of 8-12); without one, the flush writes the text itself;
 * units are kept apart in ``units.json`` so the CSV header stays plain;
 * a tissue surface is a series of ``.vtu`` files plus a ParaView collection ``<name>.pvd`` that is
   rewritten atomically after every frame, so a killed run still opens in ParaView; during a run a
@@ -39,7 +39,7 @@ from .surface_writer import write_frame, write_pvd
 
 log = logging.getLogger(__name__)
 
-#: Rows a stream's block holds at first; it doubles when the rows come faster than the flushes.
+#: Rows a stream's block holds at first (a fifth of a second at 1 kHz, the default flush interval).
 _BLOCK_ROWS = 256
 
 
@@ -78,6 +78,13 @@ class _Stream:
         self.fd = fd
         self.rows = np.empty((_BLOCK_ROWS, self.n_values))
         self.filled = 0
+
+    def advance(self) -> None:
+        """The row at ``filled`` is complete; the block doubles when full (the rows come faster
+        than the flushes)."""
+        self.filled += 1
+        if self.filled == len(self.rows):
+            self.rows = np.concatenate([self.rows, np.empty_like(self.rows)])
 
     def take(self) -> np.ndarray | None:
         """The filled rows (a copy), the block emptied; None when there are none."""
@@ -194,9 +201,7 @@ class Recorder:
                     if value.size != size:  # a single value would fill every column
                         raise ValueError
                     row[columns] = value
-                stream.filled += 1
-                if stream.filled == len(stream.rows):  # the rows come faster than the flushes: more room
-                    stream.rows = np.concatenate([stream.rows, np.empty_like(stream.rows)])
+                stream.advance()
         except (KeyError, TypeError, ValueError, AttributeError):
             self._write_slow(component, time, values)
         if self._row_writer is None and _time.monotonic() >= self._next_flush:
@@ -227,9 +232,7 @@ class Recorder:
             row.extend(arr.tolist())
         with self._lock:
             stream.rows[stream.filled] = row
-            stream.filled += 1
-            if stream.filled == len(stream.rows):
-                stream.rows = np.concatenate([stream.rows, np.empty_like(stream.rows)])
+            stream.advance()
 
     # ------------------------------------------------------------------ surfaces
     def add_surface_series(self, name: str, triangles: np.ndarray) -> Path:
