@@ -45,12 +45,12 @@ def main() -> None:
         tmp = Path(tmp)
         print(f"us per row, this process's CPU / wall until in the file ({N_ROWS} rows)")
         print(f"{'case':<28} {'text here':>17} {'row writer':>17} {'csv.writer':>17}")
-        for label, ports in cases.items():
+        for case, (label, ports) in enumerate(cases.items()):
             values = {name: rng.standard_normal(size) for name, size in ports}
             names = [name for name, _ in ports]
             results = []
             for kind in ("here", "writer"):
-                out = tmp / f"{kind}-{len(results)}-{label[:2]}"
+                out = tmp / f"{kind}-{case}"
                 rec = Recorder(out, flush_interval=0.2, row_writer=RowWriter() if kind == "writer" else None)
                 rec.add_stream("c", [(name, size, None) for name, size in ports])
                 results.append(timed(N_ROWS, lambda t, rec=rec: rec.write("c", t, values), rec.close))
