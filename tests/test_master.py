@@ -247,6 +247,36 @@ def test_a_scene_object_runs_twice_with_the_same_results(tmp_path):
     assert files[0] == files[1]
 
 
+def test_a_run_whose_row_writer_dies_completes_and_says_its_rows_were_not_all_written(tmp_path, monkeypatch):
+    """The row writer process is killed (as by the out-of-memory killer) before the first rows reach
+    it: the run goes on, and its summary and printed text say that rows were lost."""
+    import signal
+
+    from orchestration.build import ensure_fmus_built
+    from orchestration.row_writer import RowWriter
+    from orchestration.scene import load_scene
+
+    ensure_fmus_built(quiet=True)
+    write = RowWriter.write
+    killed = []
+
+    def write_once_the_writer_is_dead(self, name, rows):
+        if not killed:
+            os.kill(self.pid, signal.SIGKILL)
+            self._helper._process.join(timeout=30)
+            killed.append(self.pid)
+        write(self, name, rows)
+
+    monkeypatch.setattr(RowWriter, "write", write_once_the_writer_is_dead)
+    summary, text = run_scene(load_scene("virtual_wall", {"duration": 0.5}), tmp_path, progress=False, plots=False,
+                              hosting="in-process")
+    assert killed and summary["status"] == "completed", summary["error"]
+    errors = summary["results"]["row_errors"]
+    assert errors == [errors[0]] and errors[0].startswith(
+        "the row writer process ended before writing every row (exit code -9): BrokenPipeError"), errors
+    assert f"CSV rows not written: {errors[0]}" in text
+
+
 class _StepTrace:
     """An observer that notes when each component's step starts and when its outputs arrive."""
 
