@@ -43,13 +43,16 @@ class HelperProcess:
     def pid(self) -> int:
         return self._process.pid
 
-    def send(self, message) -> None:
-        """Queue one message; may block while the pipe is full. A helper that is gone is reported by close()."""
+    def send(self, message) -> bool:
+        """Queue one message (True), or False when the helper is gone (close() reports it); may
+        block while the pipe is full."""
         if self._send_error is None:
             try:
                 self._conn.send(message)
+                return True
             except (OSError, ValueError) as exc:
                 self._send_error = f"{type(exc).__name__}: {exc}"
+        return False
 
     def close(self, work: str) -> list[str]:
         """Wait until everything sent is done; the helper's errors, if any (``work`` names what it

@@ -129,8 +129,9 @@ class Recorder:
         #: a RowWriter (orchestration/row_writer.py): row blocks go to its process as bytes, which this
         #: recorder closes; None: the flush writes the text itself
         self._row_writer = row_writer
-        #: what the row writer process could not write (set by close)
+        #: what the row writer process could not write (set by close, or when it is gone)
         self.row_errors: list[str] = []
+        self._closed_files = False
         self._flusher = threading.Thread(target=self._flush_periodically, name="recorder-flush", daemon=True)
         self._flusher.start()
         atexit.register(self.close)
@@ -310,9 +311,22 @@ class Recorder:
                          if (rows := stream.take()) is not None]
             for stream, rows in taken:
                 if self._row_writer is not None:
-                    self._row_writer.write(stream.component, rows.tobytes())
-                elif stream.fd >= 0:
+                    if self._row_writer.write(stream.component, rows.tobytes()):
+                        continue
+                    self._lose_row_writer()
+                if stream.fd < 0 and not self._closed_files:  # the row writer had it
+                    stream.fd = os.open(stream.path, os.O_WRONLY | os.O_APPEND)
+                if stream.fd >= 0:
                     write_all(stream.fd, format_rows(rows.ravel().tolist(), stream.n_values).encode("ascii"))
+
+    def _lose_row_writer(self) -> None:
+        """The row writer process is gone (killed): this process writes the rows from now on, so
+        only those the writer had taken and not yet written are missing (close() reports it)."""
+        writer, self._row_writer = self._row_writer, None
+        self.row_errors = writer.close()
+        self.row_errors.append("the run's own process wrote the rows from then on")
+        for error in self.row_errors:
+            log.error("CSV rows: %s", error)
 
     def _flush_periodically(self) -> None:
         while not self._stop.wait(self.flush_interval / 2):
@@ -335,6 +349,7 @@ class Recorder:
             self.flush()
         finally:
             with self._lock:
+                self._closed_files = True
                 for stream in self._streams.values():
                     if stream.fd >= 0:
                         os.close(stream.fd)

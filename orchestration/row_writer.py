@@ -8,7 +8,9 @@ each block, as bytes, to this process, which makes the text and appends it to th
 
 Nothing is lost: blocks are written in the order they were sent, always as whole lines;
 :meth:`RowWriter.close` waits until every block is on disk, and a run's process that dies leaves
-the writer to write what it was sent (:mod:`.helper_process`). Unlike the surface writer it runs
+the writer to write what it was sent (:mod:`.helper_process`); a writer that dies (killed) leaves
+the recorder to write the rows itself from then on, so only the rows the writer had taken and not
+yet written are missing, and the run's summary says so. Unlike the surface writer it runs
 at normal priority: the rows of a run that is still going reach the disk within the recorder's
 flush interval (about 2 % of one CPU for the default scene).
 """
@@ -58,9 +60,10 @@ class RowWriter:
         """Rows named ``name`` have ``n_values`` floats and are appended to ``path``."""
         self._helper.send(("stream", name, str(path), int(n_values)))
 
-    def write(self, name: str, rows: bytes) -> None:
-        """Append whole rows (float64, native byte order, row after row) to stream ``name``."""
-        self._helper.send(("rows", name, rows))
+    def write(self, name: str, rows: bytes) -> bool:
+        """Append whole rows (float64, native byte order, row after row) to stream ``name``; False
+        when the writer is gone (the rows were not taken: write them some other way)."""
+        return self._helper.send(("rows", name, rows))
 
     def close(self) -> list[str]:
         """Wait until every block sent is written; the writer's errors, if any. Idempotent."""

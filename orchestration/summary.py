@@ -59,5 +59,5 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
     for error in summary["results"].get("surface_errors", [])[:5]:
         lines.append(f"  surface frame not written: {error}")
     for error in summary["results"].get("row_errors", [])[:5]:
-        lines.append(f"  CSV rows not written: {error}")
+        lines.append(f"  CSV rows: {error}")
     return "\n".join(lines)
