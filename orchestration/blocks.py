@@ -659,7 +659,7 @@ class DevicePlant:
     force, F . dx), ``dissipated_energy`` (integral of b v^2, computed from v(t) independently) and
     ``kinetic_energy``; kinetic(t) - kinetic(0) = operator + wall - dissipated to round-off.
 
-    Host protocol (``ComponentHost``): in process and synchronous, ``wait_handle()`` is None.
+    Host protocol (``ComponentHost``): in process and synchronous, ``step_done()`` is True.
     """
 
     continuous = False
@@ -793,9 +793,6 @@ class DevicePlant:
             raise FmuCallError(self.name, "doStep", self._time, "finish_step called without start_step")
         out, self._pending = self._pending, None
         return out
-
-    def wait_handle(self) -> object | None:
-        return None
 
     def step_done(self) -> bool:
         return True  # synchronous: start_step did the step

@@ -32,7 +32,7 @@ class HelperProcess:
         self.label = label
         context = multiprocessing.get_context("spawn")
         self._conn, child_end = context.Pipe(duplex=True)
-        self._process = context.Process(target=target, args=(child_end, *args), name=label.replace(" ", "-"),
+        self._process = context.Process(target=target, args=(child_end, *args), name=_process_name(label),
                                         daemon=True)
         start_shielded(self._process)  # the target ignores both: it ends when this process closes the pipe
         child_end.close()
@@ -76,13 +76,18 @@ class HelperProcess:
         return errors
 
 
-def begin_helper(name: str) -> None:
+def _process_name(label: str) -> str:
+    """The helper's process name in ``ps`` and ``top``: "row writer" runs as "row-writer"."""
+    return label.replace(" ", "-")
+
+
+def begin_helper(label: str) -> None:
     """First thing in a helper's target: ignore the stop signals (the run's process ends it by
     closing the pipe), unblock them as start_shielded had blocked them, and name the process."""
     for signum in STOP_SIGNALS:
         signal.signal(signum, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-    set_process_name(name)
+    set_process_name(_process_name(label))
 
 
 def serve(conn, label: str, handle: Callable[[tuple], None]) -> None:

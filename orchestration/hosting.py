@@ -70,7 +70,6 @@ class ComponentHost(Protocol):
     def exit_initialization(self) -> None: ...
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None: ...
     def finish_step(self) -> dict[str, np.ndarray]: ...   # outputs valid until the next step (copy to keep)
-    def wait_handle(self) -> object | None: ...
     def step_done(self) -> bool: ...
     def terminate(self) -> None: ...
 
@@ -311,9 +310,6 @@ class InProcessFmu:
                 self._require_instance("finish_step")
             raise
         return self._output_views  # views of the output buffer: valid until the next step
-
-    def wait_handle(self) -> None:
-        return None
 
     def step_done(self) -> bool:
         return True  # synchronous: start_step did the step

@@ -99,8 +99,7 @@ class Recording:
     @property
     def processes(self) -> dict[str, int]:
         """Helper processes of the run by name (the writers), for the real-time pacing."""
-        return {name: writer.pid for name, writer in (("surface writer", self._surface_writer),
-                                                      ("row writer", self._row_writer)) if writer is not None}
+        return {writer.label: writer.pid for writer in (self._surface_writer, self._row_writer) if writer is not None}
 
     @property
     def files(self) -> dict:

@@ -21,6 +21,9 @@ from pathlib import Path
 
 from .helper_process import HelperProcess, begin_helper, serve
 
+#: The helper's name in messages; its process runs as "row-writer".
+LABEL = "row writer"
+
 _float_repr = float.__repr__  # exact shortest round-trip text
 
 
@@ -49,8 +52,10 @@ class RowWriter:
     call it off the thread that must not wait (the recorder's flusher thread does).
     """
 
+    label = LABEL
+
     def __init__(self):
-        self._helper = HelperProcess("row writer", _serve)
+        self._helper = HelperProcess(LABEL, _serve)
 
     @property
     def pid(self) -> int:
@@ -72,7 +77,7 @@ class RowWriter:
 
 def _serve(conn) -> None:
     """The writer's loop: blocks in the order sent, until "close" or until the run's process is gone."""
-    begin_helper("row-writer")
+    begin_helper(LABEL)
     streams: dict[str, tuple[int, int]] = {}  # name -> (fd, n_values)
 
     def handle(message: tuple) -> None:
@@ -85,7 +90,7 @@ def _serve(conn) -> None:
             write_all(fd, format_rows(memoryview(rows).cast("d").tolist(), n_values).encode("ascii"))
 
     try:
-        serve(conn, "row writer", handle)
+        serve(conn, LABEL, handle)
     finally:
         for fd, _ in streams.values():
             os.close(fd)

@@ -23,6 +23,9 @@ import numpy as np
 
 from .helper_process import HelperProcess, begin_helper, serve
 
+#: The helper's name in messages; its process runs as "surface-writer".
+LABEL = "surface writer"
+
 
 def write_frame(frame: Path, pvd: Path, out_dir: Path, frames: list, t: float, positions: np.ndarray,
                 triangles: np.ndarray, point_data: dict) -> None:
@@ -70,8 +73,10 @@ class SurfaceWriter:
     logged by it as they happen and returned by ``close``.
     """
 
+    label = LABEL
+
     def __init__(self, out_dir: Path):
-        self._helper = HelperProcess("surface writer", _serve, str(out_dir))
+        self._helper = HelperProcess(LABEL, _serve, str(out_dir))
         # A frame (64 KB for the default wall) fills the pipe: sending it blocks until the writer
         # reads, and the writer runs only on an idle CPU. Sent from the run's thread, the default
         # scene's 1 kHz loop spent 0.3-0.4 s of its 1.5 s waiting in these sends (measured); this
@@ -111,7 +116,7 @@ class SurfaceWriter:
 
 def _serve(conn, out_dir: str) -> None:
     """The writer's loop: frames in the order sent, until "close" or until the run's process is gone."""
-    begin_helper("surface-writer")
+    begin_helper(LABEL)
     _yield_to_the_run()
     import meshio  # noqa: F401  (now, not at the first frame, which the run is waiting to see written)
 
@@ -127,4 +132,4 @@ def _serve(conn, out_dir: str) -> None:
             triangles, pvd, frames = series[name]
             write_frame(Path(frame), pvd, out, frames, t, positions, triangles, point_data)
 
-    serve(conn, "surface writer", handle)
+    serve(conn, LABEL, handle)

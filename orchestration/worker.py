@@ -255,10 +255,6 @@ class WorkerFmu:
         self._time = self.last_successful_time
         return self._output_views  # views of the shared block: valid until the next step
 
-    def wait_handle(self):
-        """The pipe: readable when the step is done (or the worker died)."""
-        return self._conn
-
     def step_done(self) -> bool:
         """Whether the step in flight has ended (or the worker is gone): finish_step will not wait."""
         if self._pending is None:

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
-import multiprocessing.connection
 import os
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -247,19 +247,23 @@ def test_killed_idle_worker_is_reported_by_the_next_call(synthetic_fmus):
 
 
 # -- concurrency handle, termination and leaks -----------------------------------------------------
-def test_workers_step_concurrently_through_their_wait_handles(synthetic_fmus):
+def test_workers_step_concurrently_and_say_when_done(synthetic_fmus):
     with hosted("worker", "a", synthetic_fmus["Signal"]) as a, hosted("worker", "b", synthetic_fmus["Signal"]) as b:
         for host in (a, b):
             start(host, observed=["count"])
+            assert host.step_done()  # nothing in flight
         for k in range(3):
             for host in (a, b):
                 host.start_step(k * H, H, {})
-            pending = {a.wait_handle(): a, b.wait_handle(): b}
-            while pending:
-                for handle in multiprocessing.connection.wait(list(pending), timeout=30):
-                    assert pending.pop(handle).finish_step()["count"].tolist() == [k + 1.0]
+            pending = [a, b]
+            deadline = time.monotonic() + 30
+            while pending:  # both steps in flight at once; each collected once it says it is done
+                assert time.monotonic() < deadline, "a worker's step did not end in 30 s"
+                for host in [h for h in pending if h.step_done()]:
+                    pending.remove(host)
+                    assert host.finish_step()["count"].tolist() == [k + 1.0]
     with hosted("in_process", "c", synthetic_fmus["Signal"]) as c:
-        assert c.wait_handle() is None
+        assert c.step_done()
 
 
 def test_terminate_is_idempotent_and_leaves_nothing(kind, synthetic_fmus):
