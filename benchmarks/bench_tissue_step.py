@@ -35,7 +35,7 @@ from collections import defaultdict
 import numpy as np
 
 from tissue_fmu import TissueModel, TissueParameters, aaa_mesh, kernels, load_mesh, save_mesh
-from tissue_fmu.factorization import TangentFactorization, _CholeskyFactor, cholmod_available, sparse_lu
+from tissue_fmu.factorization import BACKENDS, TangentFactorization, backend_available, default_backend, sparse_lu
 from tissue_fmu.integrators import BackwardEuler, FactorizedPreconditioner
 from tissue_fmu.precompute import tensors_to_csr
 
@@ -192,8 +192,9 @@ def main() -> None:
         sizes = [(32, 40, 2), (48, 60, 2), (64, 80, 2)] + ([] if args.quick else [(80, 100, 2)])
         tangent_alternatives(aaa_mesh(), None, sizes)
         return
-    print(f"frame budget {BUDGET_MS:.1f} ms; rest factor backend: "
-          f"{'CHOLMOD (cholespy)' if cholmod_available() else 'SuperLU (cholespy not installed)'}")
+    installed = [name for name in BACKENDS if backend_available(name)]
+    print(f"frame budget {BUDGET_MS:.1f} ms; rest factor backend: {default_backend()} (installed: "
+          f"{', '.join(installed)}; see tissue_fmu.factorization.BACKENDS)")
 
     # 1. the cases, before and after
     default = aaa_mesh()
@@ -260,10 +261,10 @@ def main() -> None:
         ("64x80x2, 0.5 N: Woodbury (chosen)", big, 0.5, {}),
         ("64x80x2, 0.5 N: assembled tangent instead", big, 0.5, dict(max_lowrank_dofs=-1)),
     ]
-    if cholmod_available():
-        choices += [("64x80x2, 0.5 N: rest factor by SuperLU", big, 0.5, dict(backend="superlu")),
-                    ("default, 0.5 N linear: CHOLMOD", default, 0.5, dict(law="linear")),
-                    ("default, 0.5 N linear: SuperLU", default, 0.5, dict(law="linear", backend="superlu"))]
+    for backend in installed:  # the rest factor's backends side by side (the same steps otherwise)
+        choices += [(f"64x80x2, 0.5 N: rest factor by {backend}", big, 0.5, dict(backend=backend)),
+                    (f"64x80x2, 0.5 N linear: {backend}", big, 0.5, dict(law="linear", backend=backend)),
+                    (f"default, 0.5 N linear: {backend}", default, 0.5, dict(law="linear", backend=backend))]
     for label, mesh, load, options in choices:
         options = dict(options)
         model = TissueModel(mesh, TissueParameters(law=options.pop("law", "etmm"), viscosity=VISCOSITY))
@@ -336,7 +337,7 @@ def tangent_alternatives(default, big, sizes) -> None:
     from scipy.sparse.linalg import splu
 
     print("\n5. tangent-mode alternatives, default wall, ETMM, 5 N, state after 6 steps (tangent mode):"
-          "\n   factor = best of 2 (CHOLMOD: analysis + numeric, cholespy exposes no numeric-only refactor);"
+          "\n   factor = best of 2 (CHOLMOD: analysis + numeric);"
           "\n   GMRES = iterations on the exact non-symmetric step matrix to 1e-6 with that preconditioner")
     model = TissueModel(default, TissueParameters(law="etmm", viscosity=VISCOSITY))
     model.set_contact_force(patch_force(model, 5.0))
@@ -358,13 +359,13 @@ def tangent_alternatives(default, big, sizes) -> None:
     b = np.random.default_rng(0).standard_normal(nf)
     asym = abs(a - a.T).max() / abs(a).max()
     print(f"   {nf} free dofs, {ids.shape[0]} super-threshold tets; max |A - A^T| / max |A| = {asym:.3f}")
-    print(f"   {'preconditioner':58s} {'factor':>8s} {'solve':>7s} {'GMRES':>6s}")
+    print(f"   {'preconditioner':66s} {'factor':>8s} {'solve':>7s} {'GMRES':>6s}")
 
     def row(label, factor_ms, solve, note=""):
         solve_ms, _ = _best_ms(lambda: solve(b), 5)
         its = _gmres_iterations(a, b, solve, model.params.cg_tolerance)
         factor = f"{factor_ms:8.1f}" if factor_ms is not None else f"{'-':>8s}"
-        print(f"   {label:58s} {factor} {solve_ms:7.2f} {its:6d}  {note}")
+        print(f"   {label:66s} {factor} {solve_ms:7.2f} {its:6d}  {note}")
 
     ms, lu = _best_ms(lambda: sparse_lu(pc._free_matrix(free_data)), 2)
     row("SuperLU of the exact tangent, MMD(A+A^T) (chosen)", ms, lambda r: lu.solve(r, trans="T"),
@@ -383,14 +384,16 @@ def tangent_alternatives(default, big, sizes) -> None:
     if stale is not None:
         lu_s = sparse_lu(pc._free_matrix(stale))
         row("SuperLU of the tangent 3 steps earlier (what reuse gives)", None, lambda r: lu_s.solve(r, trans="T"))
-    if cholmod_available():
-        ms, ch = _best_ms(lambda: _CholeskyFactor(sym.indptr, sym.indices, sym.data), 2)
-        row("CHOLMOD of the symmetric part (A + A^T) / 2", ms, ch.solve)
-        rest = sp.csr_matrix((pc._rest_data[pc._keep], pc._f_indices, pc._f_indptr), shape=(nf, nf))
-        ms, cr = _best_ms(lambda: _CholeskyFactor(rest.indptr, rest.indices, rest.data), 2)
-        row("CHOLMOD of the rest matrix (no refactorisation)", ms, cr.solve)
+    cholmods = [name for name in BACKENDS if BACKENDS[name][1] is not None and backend_available(name)]
+    rest = sp.csr_matrix((pc._rest_data[pc._keep], pc._f_indices, pc._f_indptr), shape=(nf, nf))
+    for name in cholmods:
+        factor_class = BACKENDS[name][1]
+        ms, ch = _best_ms(lambda: factor_class(sym.indptr, sym.indices, sym.data), 2)
+        row(f"CHOLMOD ({name}) of the symmetric part (A + A^T) / 2", ms, ch.solve)
+        ms, cr = _best_ms(lambda: factor_class(rest.indptr, rest.indices, rest.data), 2)
+        row(f"CHOLMOD ({name}) of the rest matrix (no refactorisation)", ms, cr.solve)
 
-    print("\n   single-vector rest solve (the whole 0.5 N step is one), CHOLMOD / SuperLU, ms:")
+    print(f"\n   single-vector rest solve (the whole 0.5 N step is one), ms, by {' / '.join(cholmods + ['SuperLU'])}:")
     for nc, na, nr in sizes:
         mesh = aaa_mesh(n_circumferential=nc, n_axial=na, n_radial=nr)
         model = TissueModel(mesh, TissueParameters(law="linear", viscosity=VISCOSITY))
@@ -398,11 +401,14 @@ def tangent_alternatives(default, big, sizes) -> None:
         pc = model.integrator.preconditioner
         rhs = np.random.default_rng(0).standard_normal(pc._free_dofs.size)
         rest = pc._rest_data[pc._keep]
+        times = []
+        for name in cholmods:
+            factor = BACKENDS[name][1](pc._f_indptr, pc._f_indices, rest)
+            times.append(_best_ms(lambda: factor.solve(rhs), 5)[0])
         lu = sparse_lu(pc._free_matrix(rest))
-        cholmod_ms = _best_ms(lambda: pc._lu_rest.solve(rhs), 5)[0] if pc.backend == "cholmod" else float("nan")
         superlu_ms = _best_ms(lambda: lu.solve(rhs, trans="T"), 5)[0]
-        print(f"   {nc}x{na}x{nr}: {pc._free_dofs.size} free dofs, CHOLMOD {cholmod_ms:6.2f}, SuperLU {superlu_ms:6.2f} "
-              f"(nnz(L) {lu.L.nnz}, {16e-6 * lu.L.nnz / superlu_ms:.1f} GB/s reading L twice)")
+        print(f"   {nc}x{na}x{nr}: {pc._free_dofs.size} free dofs, {' / '.join(f'{t:6.2f}' for t in times + [superlu_ms])} "
+              f"(nnz(L) of SuperLU {lu.L.nnz}: {16e-6 * lu.L.nnz / superlu_ms:.1f} GB/s reading it twice)")
 
 
 if __name__ == "__main__":

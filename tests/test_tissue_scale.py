@@ -181,27 +181,63 @@ def test_default_tolerance_stays_within_tolerance_of_the_reference():
 
 
 def test_solver_backends_agree():
-    """The rest factor by CHOLMOD (cholespy, when installed) and by SuperLU: the same preconditioner
-    to round-off, and the same Woodbury-corrected step matrix inverse."""
-    from tissue_fmu.factorization import TangentFactorization, cholmod_available
+    """The rest factor by every backend installed here (the system's CHOLMOD through scikit-sparse,
+    cholespy's CHOLMOD, SuperLU): the same preconditioner to round-off, and the same
+    Woodbury-corrected step matrix inverse."""
+    from tissue_fmu.factorization import BACKENDS, TangentFactorization, backend_available
 
-    if not cholmod_available():
-        pytest.skip("cholespy not installed: SuperLU is the only backend")
+    backends = [name for name in BACKENDS if backend_available(name)]
+    if len(backends) < 2:
+        pytest.skip(f"only {backends} installed: nothing to compare")
     model = TissueModel(aaa_mesh(**SIZES[1]), TissueParameters(law="etmm", viscosity=50.0))
     model.set_contact_force(patch_force(model, 3.0))
     for k in range(3):
         model.step(k * FRAME, FRAME)
     assert model.nonlinear_fraction > 0
     r = np.random.default_rng(2).standard_normal(model.displacement.shape)
-    results = []
-    for backend in ("superlu", "cholmod"):
+    results = {}
+    for backend in backends:
         pc = TangentFactorization(model.force_field, model.masses, model.fixed, backend=backend)
         pc.update(FRAME)
         assert pc.mode == "lowrank"
         out = np.zeros_like(r)
         pc(r, out)
-        results.append(out)
-    assert np.abs(results[0] - results[1]).max() <= 1e-9 * np.abs(results[0]).max()
+        results[backend] = out
+    reference = results.pop("superlu")
+    for backend, out in results.items():
+        assert np.abs(out - reference).max() <= 1e-9 * np.abs(reference).max(), backend
+
+
+def test_backend_choice_and_refusal():
+    """``auto`` takes the fastest backend installed; a backend that is not installed, or unknown, is
+    refused with what to do, not an ImportError from inside the first factorisation."""
+    from tissue_fmu.factorization import BACKENDS, TangentFactorization, backend_available, default_backend
+
+    model = TissueModel(aaa_mesh(**SIZES[0]), TissueParameters(law="linear"))
+    chosen = TangentFactorization(model.force_field, model.masses, model.fixed).backend
+    assert chosen == default_backend() == next(name for name in BACKENDS if backend_available(name))
+    with pytest.raises(ValueError, match="backend must be 'auto' or one of scikit-sparse, cholespy, superlu"):
+        TangentFactorization(model.force_field, model.masses, model.fixed, backend="pardiso")
+    missing = [name for name in BACKENDS if not backend_available(name)]
+    for name in missing:
+        with pytest.raises(ValueError, match="not installed here"):
+            TangentFactorization(model.force_field, model.masses, model.fixed, backend=name)
+
+
+def test_system_cholmod_keeps_to_one_blas_thread():
+    """The system's CHOLMOD runs its BLAS on one thread (the 1 kHz loop has the other CPU), and
+    leaves numpy's own BLAS alone."""
+    from tissue_fmu.factorization import backend_available
+
+    if not backend_available("scikit-sparse"):
+        pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
+    from threadpoolctl import threadpool_info
+
+    model = TissueModel(aaa_mesh(**SIZES[0]), TissueParameters(law="linear"))
+    model.step(0.0, FRAME)
+    assert model.integrator.preconditioner.backend == "scikit-sparse"
+    system = [i for i in threadpool_info() if i["prefix"] in ("libopenblas", "libblas", "libflexiblas")]
+    assert system and all(i["num_threads"] == 1 for i in system), system
 
 
 # --------------------------------------------------------------------------------------

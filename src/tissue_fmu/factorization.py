@@ -2,8 +2,9 @@
 
 The implicit step solves ``A dv = b`` with ``A = M + h C + h^2 K_t`` (lumped mass, Kelvin-Voigt
 damping, tangent stiffness).  :class:`TangentFactorization` factorises the rest matrix
-``A_0 = M + h C + h^2 K_0`` once per step size (CHOLMOD through ``cholespy`` when installed,
-else SuperLU with a symmetric fill-reducing ordering and no pivoting) and keeps the
+``A_0 = M + h C + h^2 K_0`` once per step size (CHOLMOD: the system's SuiteSparse through
+scikit-sparse when installed, else cholespy's; else SuperLU with a symmetric fill-reducing ordering
+and no pivoting; :data:`BACKENDS`) and keeps the
 preconditioner equal to the CURRENT ``A`` wherever that is affordable, so the step is one
 application of it (accepted on the true residual; see ``BackwardEuler``):
 
@@ -32,7 +33,8 @@ from its stored values), which reproduces the factors bit for bit.
 Measured (benchmarks/bench_tissue_step.py, this 2-core machine, shared): default wall, ETMM,
 5 N: former step 148 ms median (16 GMRES iterations on the rest factor), now 28 ms median, 66 ms
 mean (transient refactorisations of ~220 ms); 64x80x2 wall, ETMM, 0.5 N: 210 -> 34 ms (Woodbury,
-one solve); the factor solve is most of every step at 10k+ nodes.
+one solve) with cholespy's CHOLMOD, 30-31 ms with the system's (36-38 ms with cholespy in the same
+runs); the factor solve is most of every step at 10k+ nodes.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from .precompute import tensors_to_csr
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TangentFactorization", "sparse_lu"]
+__all__ = ["BACKENDS", "TangentFactorization", "backend_available", "default_backend", "sparse_lu"]
 
 #: Woodbury (low-rank) correction up to this many free dofs on the super-threshold elements'
 #: nodes; above it the tangent is assembled and factorised.  Measured (bench_tissue_step.py).
@@ -62,9 +64,10 @@ REFACTOR_ITERATIONS = 6
 REFACTOR_BUDGET = 24
 
 
-class _CholeskyFactor:
-    """CHOLMOD (supernodal, through the self-contained ``cholespy`` wheel) of an SPD matrix given
-    as CSR arrays; ``solve`` takes (n,) or (n, k) right-hand sides like SuperLU's."""
+class _CholespyFactor:
+    """CHOLMOD (supernodal, through the self-contained ``cholespy`` wheel, over the reference BLAS)
+    of an SPD matrix given as CSR arrays; ``solve`` takes (n,) or (n, k) right-hand sides like
+    SuperLU's."""
 
     def __init__(self, indptr, indices, data):
         import cholespy
@@ -81,12 +84,72 @@ class _CholeskyFactor:
         return x
 
 
-def cholmod_available() -> bool:
+class _SuiteSparseFactor:
+    """CHOLMOD (supernodal) of the system's SuiteSparse through scikit-sparse, over the system's
+    BLAS (OpenBLAS where installed), of an SPD matrix given as CSR arrays; ``solve`` like SuperLU's.
+
+    Measured (bench_tissue_step.py, one BLAS thread) against cholespy's CHOLMOD over the reference
+    BLAS: the factorisation 4-5x faster, single-vector solves 1.3-1.4x faster (on the 10k+ node
+    walls a solve is bound by reading the factor)."""
+
+    def __init__(self, indptr, indices, data):
+        from sksparse.cholmod import cholesky
+
+        _limit_system_blas_threads()
+        n = indptr.size - 1
+        # symmetric: the CSR arrays are the CSC arrays of the same matrix
+        matrix = sp.csc_matrix((np.asarray(data, dtype=np.float64), indices, indptr), shape=(n, n))
+        self._factor = cholesky(matrix, mode="supernodal")
+
+    def solve(self, rhs, trans="N"):
+        return self._factor(np.asarray(rhs, dtype=np.float64))
+
+
+_blas_limited = False
+
+
+def _limit_system_blas_threads() -> None:
+    """One thread for the BLAS that the system's CHOLMOD calls. The tissue runs beside the 1 kHz
+    haptic loop on a machine with few cores (a paced run gives it one CPU of its own): BLAS threads
+    would take the loop's CPU, or share one CPU and spin; two threads were at most 1.1x faster here.
+    numpy's own BLAS (a library of its own, ``libscipy_openblas``) is left as it is."""
+    global _blas_limited
+    if _blas_limited:
+        return
+    _blas_limited = True
     try:
-        import cholespy  # noqa: F401
+        from threadpoolctl import ThreadpoolController
+
+        ThreadpoolController().select(prefix=["libopenblas", "libblas", "libflexiblas"]).limit(limits=1)
+    except Exception as exc:  # a courtesy to the haptic loop: failing to set it is not an error
+        logger.warning("could not limit the system BLAS to one thread (%s)", exc)
+
+
+#: The rest factor's backends, fastest first: name -> (module it needs, factor class; None: SuperLU).
+BACKENDS = {"scikit-sparse": ("sksparse.cholmod", _SuiteSparseFactor),
+            "cholespy": ("cholespy", _CholespyFactor),
+            "superlu": ("scipy.sparse.linalg", None)}
+
+
+def backend_available(name: str) -> bool:
+    """Whether the rest factor's backend ``name`` (a key of :data:`BACKENDS`) can be imported here."""
+    import importlib
+
+    try:
+        importlib.import_module(BACKENDS[name][0])
     except ImportError:
         return False
     return True
+
+
+def default_backend() -> str:
+    """The fastest backend installed here (what ``backend="auto"`` takes)."""
+    return next(name for name in BACKENDS if backend_available(name))
+
+
+def cholmod_available() -> bool:
+    """Whether a CHOLMOD backend is installed."""
+    return default_backend() != "superlu"
 
 
 def sparse_lu(matrix_csc):
@@ -157,13 +220,18 @@ class TangentFactorization:
                  refactor_budget: int = REFACTOR_BUDGET, backend: str = "auto"):
         ff = self.force_field = force_field
         n = ff.n_nodes
-        if backend not in ("auto", "superlu", "cholmod"):
-            raise ValueError(f"backend must be 'auto', 'superlu' or 'cholmod' (got {backend!r})")
+        if backend != "auto" and backend not in BACKENDS:
+            raise ValueError(f"backend must be 'auto' or one of {', '.join(BACKENDS)} (got {backend!r})")
         if backend == "auto":
-            backend = "cholmod" if cholmod_available() else "superlu"
-        #: the rest (SPD) matrix's factorisation: CHOLMOD through cholespy when installed (measured
-        #: 1.1-1.8x faster solves than SuperLU here), else SuperLU; the tangent is always SuperLU.
+            backend = default_backend()
+        elif not backend_available(backend):
+            raise ValueError(f"backend {backend!r} needs {BACKENDS[backend][0]}, which is not installed here "
+                             "(see the README's install; backend='auto' takes the fastest one installed)")
+        #: the rest (SPD) matrix's factorisation: CHOLMOD (the system's through scikit-sparse, else
+        #: cholespy's; measured 1.1-1.8x faster solves than SuperLU here), else SuperLU; the tangent
+        #: is always SuperLU (it is not symmetric).
         self.backend = backend
+        self._factor_class = BACKENDS[backend][1]
         self.max_lowrank_dofs = int(max_lowrank_dofs)
         self.max_new_lowrank_dofs = int(max_new_lowrank_dofs)
         self.refactor_iterations = int(refactor_iterations)
@@ -266,8 +334,8 @@ class TangentFactorization:
         return sp.csc_matrix((free_data, self._f_indices, self._f_indptr), shape=(nf, nf))
 
     def _factor_rest(self, free_data):
-        if self.backend == "cholmod":
-            return _CholeskyFactor(self._f_indptr, self._f_indices, free_data)
+        if self._factor_class is not None:
+            return self._factor_class(self._f_indptr, self._f_indices, free_data)
         return sparse_lu(self._free_matrix(free_data))
 
     def _set_step(self, h: float) -> None:
