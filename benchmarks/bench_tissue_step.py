@@ -384,10 +384,10 @@ def tangent_alternatives(default, big, sizes) -> None:
     if stale is not None:
         lu_s = sparse_lu(pc._free_matrix(stale))
         row("SuperLU of the tangent 3 steps earlier (what reuse gives)", None, lambda r: lu_s.solve(r, trans="T"))
-    cholmods = [name for name in BACKENDS if BACKENDS[name][1] is not None and backend_available(name)]
+    cholmods = [name for name in BACKENDS if BACKENDS[name].factor is not None and backend_available(name)]
     rest = sp.csr_matrix((pc._rest_data[pc._keep], pc._f_indices, pc._f_indptr), shape=(nf, nf))
     for name in cholmods:
-        factor_class = BACKENDS[name][1]
+        factor_class = BACKENDS[name].factor
         ms, ch = _best_ms(lambda: factor_class(sym.indptr, sym.indices, sym.data), 2)
         row(f"CHOLMOD ({name}) of the symmetric part (A + A^T) / 2", ms, ch.solve)
         ms, cr = _best_ms(lambda: factor_class(rest.indptr, rest.indices, rest.data), 2)
@@ -403,7 +403,7 @@ def tangent_alternatives(default, big, sizes) -> None:
         rest = pc._rest_data[pc._keep]
         times = []
         for name in cholmods:
-            factor = BACKENDS[name][1](pc._f_indptr, pc._f_indices, rest)
+            factor = BACKENDS[name].factor(pc._f_indptr, pc._f_indices, rest)
             times.append(_best_ms(lambda: factor.solve(rhs), 5)[0])
         lu = sparse_lu(pc._free_matrix(rest))
         superlu_ms = _best_ms(lambda: lu.solve(rhs, trans="T"), 5)[0]

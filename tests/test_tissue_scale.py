@@ -11,6 +11,11 @@ any vertex order of a rest tet.
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -224,20 +229,41 @@ def test_backend_choice_and_refusal():
             TangentFactorization(model.force_field, model.masses, model.fixed, backend=name)
 
 
-def test_system_cholmod_keeps_to_one_blas_thread():
-    """The system's CHOLMOD runs its BLAS on one thread (the 1 kHz loop has the other CPU), and
-    leaves numpy's own BLAS alone."""
+_ONE_THREAD_SCRIPT = """
+import json, os
+from threadpoolctl import threadpool_info
+from tissue_fmu import TissueModel, TissueParameters, aaa_mesh
+from tissue_fmu.factorization import backend_available
+
+threads = lambda: len(os.listdir("/proc/self/task"))
+assert backend_available("scikit-sparse")  # loads CHOLMOD (and its BLAS's own threads)
+model = TissueModel(aaa_mesh(), TissueParameters(law="linear"))
+before = threads()
+model.step(0.0, 1.0 / 30.0)  # factorises the whole default wall's rest matrix
+assert model.integrator.preconditioner.backend == "scikit-sparse"
+system = [i["num_threads"] for i in threadpool_info() if i["prefix"] in ("libopenblas", "libblas", "libflexiblas")]
+print(json.dumps(dict(before=before, after=threads(), system_blas=system,
+                      omp_thread_limit=os.environ.get("OMP_THREAD_LIMIT"))))
+"""
+
+
+def test_system_cholmod_keeps_to_one_thread():
+    """The system's CHOLMOD factorises on one thread: its BLAS limited to one, and no OpenMP threads
+    started (CHOLMOD 3 asks for 4 in parts of a factorisation: slower on 2 cores, and the 1 kHz loop
+    has the other CPU). numpy's own BLAS is left alone. In a fresh interpreter: the OpenMP limit is
+    read when CHOLMOD is first loaded."""
     from tissue_fmu.factorization import backend_available
 
     if not backend_available("scikit-sparse"):
         pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
-    from threadpoolctl import threadpool_info
-
-    model = TissueModel(aaa_mesh(**SIZES[0]), TissueParameters(law="linear"))
-    model.step(0.0, FRAME)
-    assert model.integrator.preconditioner.backend == "scikit-sparse"
-    system = [i for i in threadpool_info() if i["prefix"] in ("libopenblas", "libblas", "libflexiblas")]
-    assert system and all(i["num_threads"] == 1 for i in system), system
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_THREAD_LIMIT", "OMP_NUM_THREADS")}
+    done = subprocess.run([sys.executable, "-c", _ONE_THREAD_SCRIPT], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["after"] == report["before"], report  # no OpenMP (or other) threads started
+    assert report["system_blas"] and all(n == 1 for n in report["system_blas"]), report
+    assert report["omp_thread_limit"] == "1", report
 
 
 # --------------------------------------------------------------------------------------

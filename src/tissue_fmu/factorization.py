@@ -39,7 +39,10 @@ runs); the factor solve is most of every step at 10k+ nodes.
 
 from __future__ import annotations
 
+import importlib
 import logging
+import os
+from typing import Callable, NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
@@ -88,55 +91,69 @@ class _SuiteSparseFactor:
     """CHOLMOD (supernodal) of the system's SuiteSparse through scikit-sparse, over the system's
     BLAS (OpenBLAS where installed), of an SPD matrix given as CSR arrays; ``solve`` like SuperLU's.
 
-    Measured (bench_tissue_step.py, one BLAS thread) against cholespy's CHOLMOD over the reference
-    BLAS: the factorisation 4-5x faster, single-vector solves 1.3-1.4x faster (on the 10k+ node
-    walls a solve is bound by reading the factor)."""
+    Measured (bench_tissue_step.py, one thread) against cholespy's CHOLMOD over the reference BLAS:
+    the factorisation 4-5x faster, single-vector solves 1.3-1.4x faster (on the 10k+ node walls a
+    solve is bound by reading the factor)."""
 
     def __init__(self, indptr, indices, data):
-        from sksparse.cholmod import cholesky
-
-        _limit_system_blas_threads()
+        cholmod = _load_system_cholmod()
         n = indptr.size - 1
         # symmetric: the CSR arrays are the CSC arrays of the same matrix
         matrix = sp.csc_matrix((np.asarray(data, dtype=np.float64), indices, indptr), shape=(n, n))
-        self._factor = cholesky(matrix, mode="supernodal")
+        self._factor = cholmod.cholesky(matrix, mode="supernodal")
 
     def solve(self, rhs, trans="N"):
         return self._factor(np.asarray(rhs, dtype=np.float64))
 
 
-_blas_limited = False
+_system_cholmod = None
 
 
-def _limit_system_blas_threads() -> None:
-    """One thread for the BLAS that the system's CHOLMOD calls. The tissue runs beside the 1 kHz
-    haptic loop on a machine with few cores (a paced run gives it one CPU of its own): BLAS threads
-    would take the loop's CPU, or share one CPU and spin; two threads were at most 1.1x faster here.
-    numpy's own BLAS (a library of its own, ``libscipy_openblas``) is left as it is."""
-    global _blas_limited
-    if _blas_limited:
-        return
-    _blas_limited = True
-    try:
-        from threadpoolctl import ThreadpoolController
+def _load_system_cholmod():
+    """Import scikit-sparse's CHOLMOD on one thread (ImportError when it is not installed).
 
-        ThreadpoolController().select(prefix=["libopenblas", "libblas", "libflexiblas"]).limit(limits=1)
-    except Exception as exc:  # a courtesy to the haptic loop: failing to set it is not an error
-        logger.warning("could not limit the system BLAS to one thread (%s)", exc)
+    The tissue runs beside the 1 kHz haptic loop on a machine with few cores (a paced run gives it
+    one CPU of its own), so CHOLMOD gets one thread:
+    * its BLAS (the system's, not numpy's own ``libscipy_openblas``), limited through threadpoolctl;
+      two threads were at most 1.1x faster here;
+    * its OpenMP loops: CHOLMOD 3 (SuiteSparse 5) runs parts of a factorisation on 4 threads
+      whatever ``OMP_NUM_THREADS`` says. Only ``OMP_THREAD_LIMIT`` caps them, and libgomp reads it
+      once, when this import loads it; it is set here unless already set. One thread factorises
+      1.4-1.8x faster on this 2-core machine (62-65 against 112-132 ms, 500-558 against 760-800 ms
+      at 11k / 46k dofs, pinned to one CPU or not), and leaves the other CPU to the haptic loop."""
+    global _system_cholmod
+    if _system_cholmod is None:
+        os.environ.setdefault("OMP_THREAD_LIMIT", "1")
+        from sksparse import cholmod
+
+        try:
+            from threadpoolctl import ThreadpoolController
+
+            ThreadpoolController().select(prefix=["libopenblas", "libblas", "libflexiblas"]).limit(limits=1)
+        except Exception as exc:  # a courtesy to the haptic loop: failing to set it is not an error
+            logger.warning("could not limit the system BLAS to one thread (%s)", exc)
+        _system_cholmod = cholmod
+    return _system_cholmod
 
 
-#: The rest factor's backends, fastest first: name -> (module it needs, factor class; None: SuperLU).
-BACKENDS = {"scikit-sparse": ("sksparse.cholmod", _SuiteSparseFactor),
-            "cholespy": ("cholespy", _CholespyFactor),
-            "superlu": ("scipy.sparse.linalg", None)}
+class _Backend(NamedTuple):
+    package: str                 # what provides it (for messages)
+    load: Callable[[], object]   # imports it; ImportError when it is not installed
+    factor: type | None          # the rest factor's class; None: SuperLU (``sparse_lu``)
+
+
+#: The rest factor's backends, fastest first (``auto`` takes the first one installed).
+BACKENDS = {
+    "scikit-sparse": _Backend("scikit-sparse (the cholmod extra)", _load_system_cholmod, _SuiteSparseFactor),
+    "cholespy": _Backend("cholespy", lambda: importlib.import_module("cholespy"), _CholespyFactor),
+    "superlu": _Backend("scipy", lambda: importlib.import_module("scipy.sparse.linalg"), None),
+}
 
 
 def backend_available(name: str) -> bool:
     """Whether the rest factor's backend ``name`` (a key of :data:`BACKENDS`) can be imported here."""
-    import importlib
-
     try:
-        importlib.import_module(BACKENDS[name][0])
+        BACKENDS[name].load()
     except ImportError:
         return False
     return True
@@ -225,13 +242,13 @@ class TangentFactorization:
         if backend == "auto":
             backend = default_backend()
         elif not backend_available(backend):
-            raise ValueError(f"backend {backend!r} needs {BACKENDS[backend][0]}, which is not installed here "
+            raise ValueError(f"backend {backend!r} needs {BACKENDS[backend].package}, which is not installed here "
                              "(see the README's install; backend='auto' takes the fastest one installed)")
         #: the rest (SPD) matrix's factorisation: CHOLMOD (the system's through scikit-sparse, else
         #: cholespy's; measured 1.1-1.8x faster solves than SuperLU here), else SuperLU; the tangent
         #: is always SuperLU (it is not symmetric).
         self.backend = backend
-        self._factor_class = BACKENDS[backend][1]
+        self._factor_class = BACKENDS[backend].factor
         self.max_lowrank_dofs = int(max_lowrank_dofs)
         self.max_new_lowrank_dofs = int(max_new_lowrank_dofs)
         self.refactor_iterations = int(refactor_iterations)
