@@ -33,8 +33,8 @@ from its stored values), which reproduces the factors bit for bit.
 Measured (benchmarks/bench_tissue_step.py, this 2-core machine, shared): default wall, ETMM,
 5 N: former step 148 ms median (16 GMRES iterations on the rest factor), now 28 ms median, 66 ms
 mean (transient refactorisations of ~220 ms); 64x80x2 wall, ETMM, 0.5 N: 210 -> 34 ms (Woodbury,
-one solve) with cholespy's CHOLMOD, 30-31 ms with the system's (36-38 ms with cholespy in the same
-runs); the factor solve is most of every step at 10k+ nodes.
+one solve) with cholespy's CHOLMOD; 26-31 ms with the system's (33-38 ms with cholespy's in the
+same runs); the factor solve is most of every step at 10k+ nodes.
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ class _SuiteSparseFactor:
     BLAS (OpenBLAS where installed), of an SPD matrix given as CSR arrays; ``solve`` like SuperLU's.
 
     Measured (bench_tissue_step.py, one thread) against cholespy's CHOLMOD over the reference BLAS:
-    the factorisation 4-5x faster, single-vector solves 1.3-1.4x faster (on the 10k+ node walls a
+    the factorisation 5-7x faster, single-vector solves 1.3-1.4x faster (on the 10k+ node walls a
     solve is bound by reading the factor)."""
 
     def __init__(self, indptr, indices, data):
@@ -162,11 +162,6 @@ def backend_available(name: str) -> bool:
 def default_backend() -> str:
     """The fastest backend installed here (what ``backend="auto"`` takes)."""
     return next(name for name in BACKENDS if backend_available(name))
-
-
-def cholmod_available() -> bool:
-    """Whether a CHOLMOD backend is installed."""
-    return default_backend() != "superlu"
 
 
 def sparse_lu(matrix_csc):
