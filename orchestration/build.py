@@ -216,7 +216,9 @@ communication step must be a whole multiple of <code>fixedInternalStepSize</code
 <p>The model is Python code (in <code>resources/</code>) run by an embedded CPython {environment['python_version']}.
 In a Python importer (FMPy, ...) the importer's interpreter is used: run the importer with an
 environment that has numpy, scipy, numba, cholespy, meshio and trimesh (and scikit-sparse for the
-system's faster CHOLMOD, when installed). In any other importer (C, C++, Rust, ...)
+system's faster CHOLMOD, when installed, with threadpoolctl: its BLAS calls run on one thread, its
+factorisations ask OpenMP for 4 threads, which only <code>OMP_THREAD_LIMIT=1</code> in the importer's
+environment caps). In any other importer (C, C++, Rust, ...)
 the FMU loads the Python library recorded at build time:</p>
 <pre>{library}</pre>
 <p>and the packages of <code>{', '.join(environment['site_packages'])}</code>. To use another installation set

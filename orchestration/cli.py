@@ -11,6 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
+from .native_threads import limit_native_threads
+
 logger = logging.getLogger("orchestration")
 
 DEFAULT_SCENE = "aaa_endovascular"
@@ -337,4 +339,5 @@ def main(argv: list[str] | None = None) -> int:
         _release_stop_signals()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    limit_native_threads()  # before any FMU loads its libraries, here or in a process started from here
     return args.func(args)

@@ -40,6 +40,7 @@ import numpy as np
 
 from .errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
 from .hosting import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
+from .native_threads import limit_native_threads
 from .ports import FmuDescription, PortInfo
 from .stopping import STOP_SIGNALS, start_shielded
 
@@ -483,6 +484,7 @@ def _worker_main(conn, name: str) -> None:
     # SIGINT (a pending SIGTERM ends the worker now, as it would have during start-up).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    limit_native_threads()  # before the FMU loads its libraries: this CPU is shared with the haptic loop's
     conn.send((Reply.OK, None, ()))
     try:
         description = conn.recv()

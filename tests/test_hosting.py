@@ -356,3 +356,25 @@ def test_a_worker_that_dies_at_start_up_is_reported_not_waited_for(tissue_fmu, t
     assert out.count("DONE") == 1, out  # the worker never ran the script to its end
     assert "REPORTED: tissue: start worker" in out and "died" in out, out
     assert 'if __name__ == "__main__":' in out, out
+
+
+def test_a_tissue_worker_factorises_on_one_thread(tissue_fmu, contact_fmu, monkeypatch):
+    """A worker caps native thread pools before it loads its FMU (orchestration.native_threads):
+    the tissue's CHOLMOD (the cholmod extra) would otherwise start 3 OpenMP threads and a BLAS
+    pool in the worker, whose CPU a 2-core machine shares with the haptic loop. So a tissue worker
+    that has factorised its wall and stepped runs as many threads as a contact worker. The master's
+    environment has no limits here: the worker sets them itself."""
+    from tissue_fmu.factorization import backend_available
+
+    if not backend_available("scikit-sparse"):
+        pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
+    for name in ("OMP_THREAD_LIMIT", "OPENBLAS_NUM_THREADS"):
+        monkeypatch.delenv(name, raising=False)
+    threads = {}
+    for name, fmu, h in (("tissue", tissue_fmu, 1 / 30), ("contact", contact_fmu, 0.001)):
+        with hosted("worker", name, fmu) as host:
+            start(host)
+            host.start_step(0.0, h, {})
+            host.finish_step()
+            threads[name] = len(os.listdir(f"/proc/{host.pid}/task"))
+    assert threads["tissue"] == threads["contact"], threads

@@ -229,41 +229,63 @@ def test_backend_choice_and_refusal():
             TangentFactorization(model.force_field, model.masses, model.fixed, backend=name)
 
 
-_ONE_THREAD_SCRIPT = """
-import json, os
+_THREADS_SCRIPT = """
+import hashlib, json, os, sys
+if sys.argv[1] == "limited":
+    from orchestration.native_threads import limit_native_threads
+    limit_native_threads()  # what the orchestrator's processes do before loading an FMU
+import numpy as np
 from threadpoolctl import threadpool_info
 from tissue_fmu import TissueModel, TissueParameters, aaa_mesh
-from tissue_fmu.factorization import backend_available
+from tissue_fmu.factorization import _SYSTEM_BLAS, backend_available
 
 threads = lambda: len(os.listdir("/proc/self/task"))
-assert backend_available("scikit-sparse")  # loads CHOLMOD (and its BLAS's own threads)
-model = TissueModel(aaa_mesh(), TissueParameters(law="linear"))
+system_blas = lambda: [i["num_threads"] for i in threadpool_info() if i["prefix"] in _SYSTEM_BLAS]
 before = threads()
+assert backend_available("scikit-sparse")  # loads CHOLMOD, libgomp and the system's OpenBLAS
+blas_before = system_blas()
+model = TissueModel(aaa_mesh(), TissueParameters(law="linear"))
 model.step(0.0, 1.0 / 30.0)  # factorises the whole default wall's rest matrix
 assert model.integrator.preconditioner.backend == "scikit-sparse"
-system = [i["num_threads"] for i in threadpool_info() if i["prefix"] in ("libopenblas", "libblas", "libflexiblas")]
-print(json.dumps(dict(before=before, after=threads(), system_blas=system,
-                      omp_thread_limit=os.environ.get("OMP_THREAD_LIMIT"))))
+rhs = np.random.default_rng(0).standard_normal((model.integrator.preconditioner.free_dofs.size, 12))
+solved = model.integrator.preconditioner.solve_matrix(rhs)
+print(json.dumps(dict(before=before, after=threads(), blas_before=blas_before, blas_after=system_blas(),
+                      bits=hashlib.sha1(np.ascontiguousarray(solved).tobytes()).hexdigest(),
+                      environment={k: os.environ.get(k) for k in ("OMP_THREAD_LIMIT", "OPENBLAS_NUM_THREADS")})))
 """
 
 
-def test_system_cholmod_keeps_to_one_thread():
-    """The system's CHOLMOD factorises on one thread: its BLAS limited to one, and no OpenMP threads
-    started (CHOLMOD 3 asks for 4 in parts of a factorisation: slower on 2 cores, and the 1 kHz loop
-    has the other CPU). numpy's own BLAS is left alone. In a fresh interpreter: the OpenMP limit is
-    read when CHOLMOD is first loaded."""
+def _threads_report(mode: str, cpus: str | None = None) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_THREAD_LIMIT", "OPENBLAS_NUM_THREADS")}
+    command = [sys.executable, "-c", _THREADS_SCRIPT, mode]
+    done = subprocess.run(["taskset", "-c", cpus, *command] if cpus else command, capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_system_cholmod_threads_bits_and_good_manners():
+    """The system's CHOLMOD, in fresh interpreters (the limits are read when the libraries load):
+    * the same bits whatever the process's CPUs and thread settings: its BLAS runs on one thread in
+      every CHOLMOD call (two OpenBLAS threads round differently), and the thread count it found
+      is restored afterwards, for an importer that uses the same OpenBLAS;
+    * with the orchestrator's limits in the environment (orchestration.native_threads) loading
+      and factorising start no thread (CHOLMOD would take 4 OpenMP threads beside the 1 kHz loop);
+    * the library itself leaves the environment alone: it also runs inside other people's FMU
+      importers, whose OpenMP it must not cap."""
     from tissue_fmu.factorization import backend_available
 
     if not backend_available("scikit-sparse"):
         pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_THREAD_LIMIT", "OMP_NUM_THREADS")}
-    done = subprocess.run([sys.executable, "-c", _ONE_THREAD_SCRIPT], capture_output=True, text=True, env=env,
-                          timeout=300)
-    assert done.returncode == 0, done.stderr[-3000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
-    assert report["after"] == report["before"], report  # no OpenMP (or other) threads started
-    assert report["system_blas"] and all(n == 1 for n in report["system_blas"]), report
-    assert report["omp_thread_limit"] == "1", report
+    limited = _threads_report("limited")
+    assert limited["after"] == limited["before"], limited
+    assert limited["environment"] == {"OMP_THREAD_LIMIT": "1", "OPENBLAS_NUM_THREADS": "1"}, limited
+    free = _threads_report("as-is")
+    assert free["environment"] == {"OMP_THREAD_LIMIT": None, "OPENBLAS_NUM_THREADS": None}, free
+    assert free["after"] > free["before"], free  # what the limits prevent (this test's premise)
+    assert free["blas_after"] == free["blas_before"], free
+    pinned = _threads_report("as-is", cpus="0")
+    assert free["bits"] == limited["bits"] == pinned["bits"], (free, limited, pinned)
 
 
 # --------------------------------------------------------------------------------------

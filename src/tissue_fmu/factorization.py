@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import os
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -96,43 +95,52 @@ class _SuiteSparseFactor:
     solve is bound by reading the factor)."""
 
     def __init__(self, indptr, indices, data):
-        cholmod = _load_system_cholmod()
+        cholmod, self._one_blas_thread = _load_system_cholmod()
         n = indptr.size - 1
         # symmetric: the CSR arrays are the CSC arrays of the same matrix
         matrix = sp.csc_matrix((np.asarray(data, dtype=np.float64), indices, indptr), shape=(n, n))
-        self._factor = cholmod.cholesky(matrix, mode="supernodal")
+        with self._one_blas_thread():
+            self._factor = cholmod.cholesky(matrix, mode="supernodal")
 
     def solve(self, rhs, trans="N"):
-        return self._factor(np.asarray(rhs, dtype=np.float64))
+        rhs = np.asarray(rhs, dtype=np.float64)
+        with self._one_blas_thread():
+            return self._factor(rhs)
 
 
 _system_cholmod = None
 
+#: The system BLAS libraries CHOLMOD may run on (threadpoolctl's names); numpy's and scipy's own
+#: OpenBLAS (``libscipy_openblas``) are other libraries and are left alone.
+_SYSTEM_BLAS = ["libopenblas", "libblas", "libflexiblas", "libblis", "libmkl_rt"]
+
 
 def _load_system_cholmod():
-    """Import scikit-sparse's CHOLMOD on one thread (ImportError when it is not installed).
+    """scikit-sparse's CHOLMOD and a context manager that runs the system BLAS on one thread
+    (ImportError when scikit-sparse or threadpoolctl is not installed).
 
-    The tissue runs beside the 1 kHz haptic loop on a machine with few cores (a paced run gives it
-    one CPU of its own), so CHOLMOD gets one thread:
-    * its BLAS (the system's, not numpy's own ``libscipy_openblas``), limited through threadpoolctl;
-      two threads were at most 1.1x faster here;
-    * its OpenMP loops: CHOLMOD 3 (SuiteSparse 5) runs parts of a factorisation on 4 threads
-      whatever ``OMP_NUM_THREADS`` says. Only ``OMP_THREAD_LIMIT`` caps them, and libgomp reads it
-      once, when this import loads it; it is set here unless already set. One thread factorises
-      1.4-1.8x faster on this 2-core machine (62-65 against 112-132 ms, 500-558 against 760-800 ms
-      at 11k / 46k dofs, pinned to one CPU or not), and leaves the other CPU to the haptic loop."""
+    One BLAS thread for every CHOLMOD call, restored afterwards: the factor and its solves then
+    have the same bits in every process, whatever its CPU count or its importer's settings (two
+    OpenBLAS threads round differently: measured), and an importer that uses the same OpenBLAS
+    keeps its own thread count. Two threads were at most 1.1x faster here, and the 1 kHz loop has
+    the other CPU.
+
+    OpenMP: CHOLMOD 3 (SuiteSparse 5) runs parts of a factorisation on 4 threads whatever
+    ``OMP_NUM_THREADS`` says (the same bits with one: measured). Only ``OMP_THREAD_LIMIT`` caps
+    them, read once when libgomp loads and process-wide: this module does not set it, since it runs
+    inside other people's FMU importers too; the orchestrator sets it in its own processes
+    (``orchestration.native_threads``), where one thread factorises 1.4-1.8x faster."""
     global _system_cholmod
     if _system_cholmod is None:
-        os.environ.setdefault("OMP_THREAD_LIMIT", "1")
         from sksparse import cholmod
+        from threadpoolctl import ThreadpoolController
 
-        try:
-            from threadpoolctl import ThreadpoolController
+        system_blas = ThreadpoolController().select(prefix=_SYSTEM_BLAS)
 
-            ThreadpoolController().select(prefix=["libopenblas", "libblas", "libflexiblas"]).limit(limits=1)
-        except Exception as exc:  # a courtesy to the haptic loop: failing to set it is not an error
-            logger.warning("could not limit the system BLAS to one thread (%s)", exc)
-        _system_cholmod = cholmod
+        def one_blas_thread():
+            return system_blas.limit(limits=1)
+
+        _system_cholmod = cholmod, one_blas_thread
     return _system_cholmod
 
 
