@@ -368,7 +368,9 @@ def test_a_tissue_worker_factorises_on_one_thread(tissue_fmu, contact_fmu, monke
 
     if not backend_available("scikit-sparse"):
         pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
-    for name in ("OMP_THREAD_LIMIT", "OPENBLAS_NUM_THREADS"):
+    from orchestration.native_threads import NATIVE_THREAD_LIMITS
+
+    for name in NATIVE_THREAD_LIMITS:
         monkeypatch.delenv(name, raising=False)
     threads = {}
     for name, fmu, h in (("tissue", tissue_fmu, 1 / 30), ("contact", contact_fmu, 0.001)):

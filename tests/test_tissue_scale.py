@@ -21,6 +21,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from orchestration.native_threads import NATIVE_THREAD_LIMITS
 from tissue_fmu import kernels
 from tissue_fmu.errors import MeshError, TissueError
 from tissue_fmu.forcefield import TensorMassForceField, assemble_stiffness
@@ -237,6 +238,7 @@ if sys.argv[1] == "limited":
 import numpy as np
 from threadpoolctl import threadpool_info
 from tissue_fmu import TissueModel, TissueParameters, aaa_mesh
+from orchestration.native_threads import NATIVE_THREAD_LIMITS
 from tissue_fmu.factorization import _SYSTEM_BLAS, backend_available
 
 threads = lambda: len(os.listdir("/proc/self/task"))
@@ -251,12 +253,12 @@ rhs = np.random.default_rng(0).standard_normal((model.integrator.preconditioner.
 solved = model.integrator.preconditioner.solve_matrix(rhs)
 print(json.dumps(dict(before=before, after=threads(), blas_before=blas_before, blas_after=system_blas(),
                       bits=hashlib.sha1(np.ascontiguousarray(solved).tobytes()).hexdigest(),
-                      environment={k: os.environ.get(k) for k in ("OMP_THREAD_LIMIT", "OPENBLAS_NUM_THREADS")})))
+                      environment={k: os.environ.get(k) for k in NATIVE_THREAD_LIMITS})))
 """
 
 
 def _threads_report(mode: str, cpus: str | None = None) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_THREAD_LIMIT", "OPENBLAS_NUM_THREADS")}
+    env = {k: v for k, v in os.environ.items() if k not in NATIVE_THREAD_LIMITS}
     command = [sys.executable, "-c", _THREADS_SCRIPT, mode]
     done = subprocess.run(["taskset", "-c", cpus, *command] if cpus else command, capture_output=True, text=True,
                           env=env, timeout=300)
@@ -279,9 +281,9 @@ def test_system_cholmod_threads_bits_and_good_manners():
         pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
     limited = _threads_report("limited")
     assert limited["after"] == limited["before"], limited
-    assert limited["environment"] == {"OMP_THREAD_LIMIT": "1", "OPENBLAS_NUM_THREADS": "1"}, limited
+    assert limited["environment"] == NATIVE_THREAD_LIMITS, limited
     free = _threads_report("as-is")
-    assert free["environment"] == {"OMP_THREAD_LIMIT": None, "OPENBLAS_NUM_THREADS": None}, free
+    assert free["environment"] == dict.fromkeys(NATIVE_THREAD_LIMITS), free
     assert free["after"] > free["before"], free  # what the limits prevent (this test's premise)
     assert free["blas_after"] == free["blas_before"], free
     pinned = _threads_report("as-is", cpus="0")
