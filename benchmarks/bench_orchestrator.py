@@ -10,6 +10,8 @@
    own choice (the 30 Hz tissue in a worker, stepping concurrently with the 1 kHz loop in this
    process); real-time factors and ratios. Targets: the scene's hosting at least as fast as the
    direct serial loop, real-time factor >= 5.
+3. The compiled loop (orchestration/compiled_loop.py): the in-process and the scene's hosting
+   runs again with every step made from Python (``compiled_loop=False``), the same results.
 
 Run: ``.venv/bin/python benchmarks/bench_orchestrator.py [--duration 4]``. The machine is noisy:
 compare the ratios, not the absolute times.
@@ -110,13 +112,14 @@ def direct_loop(duration: float) -> float:
     return time.perf_counter() - start, peak
 
 
-def orchestrated(duration: float, hosting: str) -> dict:
+def orchestrated(duration: float, hosting: str, compiled_loop: bool = True) -> dict:
     from orchestration.master import run_scene
     from orchestration.scene import load_scene
 
     scene = load_scene("aaa_endovascular", {"duration": duration})
     with tempfile.TemporaryDirectory() as tmp:
-        summary, _ = run_scene(scene, Path(tmp), hosting=hosting, progress=False, plots=False, vtu=False)
+        summary, _ = run_scene(scene, Path(tmp), hosting=hosting, progress=False, plots=False, vtu=False,
+                               compiled_loop=compiled_loop)
     if summary["status"] != "completed":
         raise SystemExit(f"{hosting} run failed: {summary['error']}")
     return summary
@@ -139,8 +142,11 @@ def main() -> None:
     inproc = orchestrated(args.duration, "in-process")
     outproc = orchestrated(args.duration, "out-of-process")
     mixed = orchestrated(args.duration, None)
+    inproc_python = orchestrated(args.duration, "in-process", compiled_loop=False)
+    mixed_python = orchestrated(args.duration, None, compiled_loop=False)
     overhead = (inproc["wall_time_s"] - direct) / inproc["wall_time_s"]
     peak = inproc["peaks"]["contact.tool_force"]["value"]
+    same = all(run["peaks"] == inproc["peaks"] for run in (outproc, mixed, inproc_python, mixed_python))
     print(f"default scene, {args.duration:g} s simulated (peak haptic force: direct {direct_peak:.6g} N, "
           f"orchestrated {peak:.6g} N: {'the same run' if direct_peak == peak else 'DIFFERENT RUNS'})")
     print(f"  direct model loop (no FMI, no master)   wall {direct:7.2f} s   real-time factor {args.duration / direct:5.2f}")
@@ -163,6 +169,10 @@ def main() -> None:
     print(f"  every FMU in a worker / in-process     = {inproc['wall_time_s'] / outproc['wall_time_s']:5.2f}x speed")
     print(f"  the scene's hosting / in-process       = {inproc['wall_time_s'] / mixed['wall_time_s']:5.2f}x speed")
     print(f"  the scene's hosting / direct serial    = {direct / mixed['wall_time_s']:5.2f}x speed (target >= 1)")
+    print(f"  the compiled loop: in-process {inproc_python['wall_time_s'] / inproc['wall_time_s']:5.2f}x, the scene's "
+          f"hosting {mixed_python['wall_time_s'] / mixed['wall_time_s']:5.2f}x the speed of every step from Python "
+          f"(wall {inproc_python['wall_time_s']:.2f} and {mixed_python['wall_time_s']:.2f} s; "
+          f"{'the same peaks in every run' if same else 'PEAKS DIFFER BETWEEN RUNS'})")
     for label, run in (("all workers", outproc), ("scene hosting", mixed)):
         for name, comp in run["components"].items():
             print(f"    {label:13s} {name:9s} {comp['hosting']:15s} busy {comp['busy_wall_s']:6.2f} s "

@@ -156,7 +156,8 @@ class MultirateAlgorithm:
     """
 
     def __init__(self, scene: Scene, duration: Fraction, make_host: Callable[[ComponentSpec], object],
-                 observers: list = (), extra_observed: dict[str, list[str]] | None = None):
+                 observers: list = (), extra_observed: dict[str, list[str]] | None = None,
+                 compiled_loop: bool = True):
         self.scene = scene
         self.duration = Fraction(duration)
         self.base = math.lcm(tick_base(scene), self.duration.denominator)
@@ -176,6 +177,12 @@ class MultirateAlgorithm:
         self._source_cache: dict[str, tuple[int, dict]] = {}
         self._schedule: dict = {}
         self._cache_until = -1  # set by run(): decisions before this tick are remembered
+        self._period = 1        # set by run(): the hyperperiod of the components' steps, in ticks
+        self._lookahead = 1     # set by run(): how far ahead of the slowest a component may step
+        #: run stretches of in-process steps in C (:mod:`.compiled_loop`) where the components allow it
+        self.use_compiled_loop = compiled_loop
+        #: the compiled loop of the run (None: every step in Python); its ``steps`` count what it made
+        self.compiled_loop = None
 
     # -- time ------------------------------------------------------------------------------------
     def seconds(self, tick: int) -> float:
@@ -430,15 +437,24 @@ class MultirateAlgorithm:
         for comp in comps:
             period = math.lcm(period, comp.step)
         lookahead = 2 * max((c.step for c in comps), default=1)
+        self._period, self._lookahead = period, lookahead
         # Beyond this tick the end of the run changes decisions: they are no longer remembered.
         self._cache_until = self.end - 3 * lookahead
         events = 0
         asynchronous = [c for c in comps if c.asynchronous]
+        loop = None
+        if self.use_compiled_loop:
+            from .compiled_loop import CompiledLoop
+
+            loop = self.compiled_loop = CompiledLoop.for_algorithm(self)
+        members = loop.members if loop is not None else {}
+        stretched = False
         self.notify("started")
         while True:
             if self.stop_reason:
                 raise RunInterrupted(self.stop_reason)
-            if asynchronous and not events & _POLL_EVERY_MASK:
+            if asynchronous and (stretched or not events & _POLL_EVERY_MASK):
+                stretched = False
                 # A worker's step is collected once it is done, not at the tick that needs it: a
                 # 30 Hz result then reaches the histories (copies, recording) between haptic
                 # ticks instead of inside the one that also takes in the new frame.
@@ -459,6 +475,14 @@ class MultirateAlgorithm:
                 break
             start, index = decision
             comp = comps[index]
+            if start and index in members:
+                made = loop.run_stretch(clock)
+                if made:
+                    events += made
+                    stretched = True
+                    if progress is not None:
+                        progress(self.reached)
+                    continue
             if start:
                 self._start(comp, clock)
                 if not comp.asynchronous:
@@ -475,36 +499,44 @@ class MultirateAlgorithm:
 
     def _decide(self, lookahead: int) -> tuple[bool, int] | None:
         """The next call: (True, i) starts component i's step, (False, i) collects it; None: done."""
-        pending = [c for c in self.ordered if c.time < c.end or c.running]
+        return self._decide_at([c.time for c in self.ordered], [c.running for c in self.ordered], lookahead)
+
+    def _decide_at(self, times: list[int], running: list[bool], lookahead: int) -> tuple[bool, int] | None:
+        """The decision of :meth:`_decide` for the components at ``times`` (ticks reached) with the
+        steps ``running`` in flight: a function of these alone (the compiled loop plans with it)."""
+        comps = self.ordered
+        pending = [i for i, c in enumerate(comps) if times[i] < c.end or running[i]]
         if not pending:
             return None
-        t_min = min(c.time for c in pending)
+        t_min = min(times[i] for i in pending)
         best = None
-        for c in pending:
-            if c.running or c.time >= c.end or c.time - t_min > lookahead or not self._ready(c):
+        for i in pending:
+            c = comps[i]
+            if running[i] or times[i] >= c.end or times[i] - t_min > lookahead or not self._ready_at(c, times):
                 continue
             # Earliest first; at the same tick the steps done here go before a worker's start,
             # which has a whole step to run and would hold up this tick (at a 30 Hz frame: its
             # averaged inputs, the copy into shared memory) for a few tenths of a millisecond.
-            if best is None or (c.time, c.asynchronous, c.rank) < (best.time, best.asynchronous, best.rank):
-                best = c
+            if best is None or (times[i], c.asynchronous, c.rank) < (times[best], comps[best].asynchronous,
+                                                                     comps[best].rank):
+                best = i
         if best is not None:
-            return True, best.rank
-        running = [c for c in pending if c.running]
-        if running:
-            return False, min(running, key=lambda c: (c.time, c.rank)).rank
-        stuck = ", ".join(f"{c.name} at t = {self.seconds(c.time):.6g} s" for c in pending)
+            return True, comps[best].rank
+        in_flight = [i for i in pending if running[i]]
+        if in_flight:
+            return False, comps[min(in_flight, key=lambda i: (times[i], comps[i].rank))].rank
+        stuck = ", ".join(f"{comps[i].name} at t = {self.seconds(times[i]):.6g} s" for i in pending)
         raise OrchestrationError(f"no component can step ({stuck}); this is a bug in the scene checks")
 
     @staticmethod
-    def _ready(comp: Component) -> bool:
+    def _ready_at(comp: Component, times: list[int]) -> bool:
         for route in comp.routes:
             producer = route.producer
             if producer is None or route.history is None:
                 continue
-            tau = comp.time + route.need_offset
+            tau = times[comp.rank] + route.need_offset
             need = min((tau // producer.step) * producer.step, producer.end)
-            if producer.time < need:
+            if times[producer.rank] < need:
                 return False
         return True
 

@@ -91,7 +91,7 @@ def layer_library(build_dir: Path = BUILD_DIR) -> Path:
     library = work / "fmi3_layer.so"
     if library.exists():
         return library
-    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    compiler = find_compiler()
     if compiler is None:
         raise BuildError("no C compiler found (cc, gcc or clang): building the FMUs compiles the project's FMI "
                          "layer. Install one (Debian: `apt-get install -y gcc`) or set CC, and build again.")
@@ -103,6 +103,37 @@ def layer_library(build_dir: Path = BUILD_DIR) -> Path:
     proc = subprocess.run(command, capture_output=True, text=True)
     if proc.returncode != 0:
         raise BuildError(f"compiling the FMI layer failed (exit {proc.returncode}):\n{' '.join(command)}\n"
+                         f"{proc.stderr[-3000:]}")
+    partial.replace(library)
+    return library
+
+
+def find_compiler() -> str | None:
+    """The C compiler the build uses: $CC, else cc, gcc or clang on the PATH."""
+    return os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+
+
+COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"
+
+
+def compiled_loop_library(build_dir: Path = BUILD_DIR) -> Path:
+    """Compile (once per source version) the master's compiled loop (orchestration/compiled_loop.c)."""
+    work = Path(build_dir) / f"compiled_loop-{_digest([COMPILED_LOOP_SOURCE])[:16]}"
+    library = work / "compiled_loop.so"
+    if library.exists():
+        return library
+    compiler = find_compiler()
+    if compiler is None:
+        raise BuildError("no C compiler found (cc, gcc or clang) for the master's compiled loop; install one "
+                         "(Debian: `apt-get install -y gcc`) or set CC")
+    work.mkdir(parents=True, exist_ok=True)
+    partial = work / f"compiled_loop.so.{os.getpid()}.partial"  # two processes may compile at once
+    command = [compiler, "-std=gnu11", "-O2", "-g", "-Wall", "-Wextra", "-fPIC", "-shared", str(COMPILED_LOOP_SOURCE),
+               "-o", str(partial)]
+    proc = subprocess.run(command, capture_output=True, text=True)
+    if proc.returncode != 0:
+        partial.unlink(missing_ok=True)
+        raise BuildError(f"compiling the master's compiled loop failed (exit {proc.returncode}):\n{' '.join(command)}\n"
                          f"{proc.stderr[-3000:]}")
     partial.replace(library)
     return library
@@ -272,6 +303,10 @@ def ensure_fmus_built(quiet: bool = False) -> None:
             if not quiet:
                 print(f"building fmus/{name}.fmu ...", flush=True)
             build_fmu(name)
+    try:  # the master's compiled loop, so that the first run does not compile it while it is timed
+        compiled_loop_library()
+    except BuildError as exc:
+        logger.warning("%s; runs step every FMU from Python", exc)
     warm_numba_cache(quiet)
 
 

@@ -229,7 +229,8 @@ def _prepare_and_run(args, stop, folder) -> int:
 def _simulate(args, stop, scene, folder, Simulation) -> int:
     try:
         simulation = Simulation(scene, folder.out, hosting=args.hosting, realtime=args.realtime or None,
-                                progress=not args.quiet, vtu=not args.no_vtu, folder=folder)
+                                progress=not args.quiet, vtu=not args.no_vtu, folder=folder,
+                                compiled_loop=not args.python_loop)
     except ValueError as exc:  # Simulation checks the duration again (the scene did: not reached)
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -310,6 +311,9 @@ def main(argv: list[str] | None = None) -> int:
     p_run.add_argument("--realtime", action="store_true", help="pace to the wall clock and count missed haptic deadlines")
     p_run.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
     p_run.add_argument("--no-vtu", action="store_true", help="do not write the surface time series")
+    p_run.add_argument("--python-loop", action="store_true",
+                       help="make every step from Python, not stretches of in-process steps in C (the same results, "
+                            "slower; for comparison)")
     p_run.add_argument("--quiet", action="store_true", help="no progress bar and no summary unless it fails")
     p_run.set_defaults(func=_cmd_run)
 

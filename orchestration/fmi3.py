@@ -292,6 +292,8 @@ class Fmi3Instance:
         #: after fmi3Error the instance is in the Error mode (no fmi3Terminate); after fmi3Fatal no call at all
         self.failed = False
         self.fatal = False
+        #: error-level messages logged so far, where compiled code can read it (orchestration.compiled_loop)
+        self.logged_errors = np.zeros(1, dtype=np.int64)
         self._on_message = on_message
         self._functions = library.functions
         self._do_step_raw = library.functions.get("fmi3DoStep") or self._no_do_step
@@ -331,6 +333,8 @@ class Fmi3Instance:
         try:
             text = message.decode("utf-8", "replace") if message is not None else ""
             self.messages.append((int(status), text))
+            if status >= FMI_ERROR:
+                self.logged_errors[0] += 1
             if self._on_message is not None:
                 self._on_message(int(status), text)
         except Exception:  # never raise into the FMU's C code
@@ -533,6 +537,11 @@ class Fmi3Instance:
     @property
     def input_names(self) -> list[str]:
         return [p.name for p in self._inputs]
+
+    @property
+    def output_groups(self) -> list[_OutputGroup]:
+        """The bound observed ports, one group per type in buffer order: what :meth:`pull` reads."""
+        return self._groups
 
     def input_index(self, name: str) -> int | None:
         return self._input_index.get(name)

@@ -49,7 +49,7 @@ class Simulation:
     def __init__(self, scene: Scene, out_dir: Path | str, *, hosting: str | None = None,
                  realtime: bool | None = None, progress: bool = True, duration: Fraction | float | None = None,
                  plots: bool = True, vtu: bool = True, observe: dict[str, list[str]] | None = None,
-                 folder=None):
+                 folder=None, compiled_loop: bool = True):
         self.scene = scene
         #: the command line's ResultFolder (lock, ``<out>.running``, replaced at the end) or None:
         #: then the run writes straight into ``out_dir``
@@ -70,6 +70,8 @@ class Simulation:
         self.write_vtu = vtu
         #: extra ports to read after every step (studies): {component: [port, ...]}
         self.extra_observed = dict(observe or {})
+        #: run stretches of in-process FMU steps in C (orchestration.compiled_loop); False: all in Python
+        self.compiled_loop = compiled_loop
         #: the latest outputs of every component, {component: {port: array}}, kept after the run
         self.final_outputs: dict[str, dict[str, np.ndarray]] = {}
         self.summary_text = ""
@@ -115,7 +117,8 @@ class Simulation:
         pacing = RealtimePacing() if self.realtime else None
         progress = Progress(self.scene, self.duration, enabled=self.progress)
         observers = [o for o in (recording, statistics, pacing, progress) if o is not None]
-        algorithm = MultirateAlgorithm(self.scene, self.duration, self._make_host, observers, self.extra_observed)
+        algorithm = MultirateAlgorithm(self.scene, self.duration, self._make_host, observers, self.extra_observed,
+                                       compiled_loop=self.compiled_loop)
         self.algorithm = algorithm
 
         def on_stop(request):

@@ -51,6 +51,7 @@ class Recording:
         from .recording import Recorder
 
         self.seconds = algorithm.seconds
+        self.base = algorithm.base
         self.recorder = Recorder(self.out_dir, surface_writer=self._surface_writer, row_writer=self._row_writer)
         for name, ports in self._recorded.items():
             spec = self.scene.components[name]
@@ -71,6 +72,17 @@ class Recording:
             for surface in self.surfaces:
                 if surface.component == comp.name and comp.steps % surface.every == 0:
                     self._write_surface(surface, tick, outputs)
+
+    def stepped_block(self, comp, ticks: list[int], outputs: dict[str, np.ndarray], first_step: int) -> None:
+        """``stepped`` for steps ``first_step + 1, ...`` ending at ``ticks``; ``outputs[port]`` has a row per step."""
+        if comp.name in self._recorded:
+            # int64 / int: correctly rounded below 2**53, the same floats as self.seconds
+            self.recorder.write_rows(comp.name, np.array(ticks, dtype=np.int64) / self.base, outputs)
+        for surface in self.surfaces:
+            if surface.component == comp.name:
+                for i, tick in enumerate(ticks):
+                    if tick and (first_step + i + 1) % surface.every == 0:
+                        self._write_surface(surface, tick, {name: values[i] for name, values in outputs.items()})
 
     def _write_surface(self, surface, tick: int, outputs) -> None:
         positions = np.asarray(outputs[surface.positions]).reshape(-1, 3)
@@ -127,15 +139,27 @@ class Statistics:
         self.seconds = algorithm.seconds
 
     def stepped(self, comp, tick: int, outputs) -> None:
-        t = self.seconds(tick)
-        h = self.seconds(comp.step) if tick else 0.0
         for kind, port, ref in self.by_component[comp.name]:
-            values = outputs[port].tolist()  # plain floats: cheaper than numpy for a few values
-            if kind == "peaks":
+            # plain floats: cheaper than numpy for a few values
+            self._take(kind, ref, comp.step, (tick,), (outputs[port].tolist(),))
+
+    def stepped_block(self, comp, ticks: list[int], outputs: dict[str, np.ndarray], first_step: int) -> None:
+        """``stepped`` for steps ending at ``ticks``; ``outputs[port]`` has a row per step."""
+        for kind, port, ref in self.by_component[comp.name]:
+            self._take(kind, ref, comp.step, ticks, outputs[port].tolist())
+
+    def _take(self, kind: str, ref: str, step: int, ticks, rows) -> None:
+        """Fold the values ``rows`` of ``ref`` at ``ticks`` (in time order) into its statistic."""
+        seconds = self.seconds
+        if kind == "peaks":
+            peak, at = self.peaks[ref]
+            for tick, values in zip(ticks, rows):
                 magnitude = math.hypot(*values) if len(values) > 1 else abs(values[0])
-                if magnitude > self.peaks[ref][0]:
-                    self.peaks[ref] = (magnitude, t)
-            elif kind == "energy":
+                if magnitude > peak:
+                    peak, at = magnitude, seconds(tick)
+            self.peaks[ref] = (peak, at)
+        elif kind == "energy":
+            for values in rows:
                 v = values[0] if len(values) == 1 else math.hypot(*values)
                 e = self.energy.get(ref)
                 if e is None:
@@ -145,17 +169,19 @@ class Statistics:
                     e["min"] = v
                 if v > e["max"]:
                     e["max"] = v
-            else:
+        else:
+            h = seconds(step)
+            w = self.warnings.get(ref)
+            if w is None:
+                w = self.warnings[ref] = {"count": 0, "time_on_s": 0.0, "first_s": None, "_on": False}
+            for tick, values in zip(ticks, rows):
                 on = values[0] != 0
-                w = self.warnings.get(ref)
-                if w is None:
-                    w = self.warnings[ref] = {"count": 0, "time_on_s": 0.0, "first_s": None, "_on": False}
                 if on and not w["_on"]:
                     w["count"] += 1
                     if w["first_s"] is None:
-                        w["first_s"] = t
+                        w["first_s"] = seconds(tick)
                 if on:
-                    w["time_on_s"] += h
+                    w["time_on_s"] += h if tick else 0.0
                 w["_on"] = on
 
     def report(self) -> dict:

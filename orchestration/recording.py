@@ -86,6 +86,13 @@ class _Stream:
         if self.filled == len(self.rows):
             self.rows = np.concatenate([self.rows, np.empty_like(self.rows)])
 
+    def reserve(self, rows: int) -> np.ndarray:
+        """The next ``rows`` rows of the block (to be filled, then counted with ``filled += rows``);
+        the block grows so that a row stays free after them."""
+        while self.filled + rows >= len(self.rows):
+            self.rows = np.concatenate([self.rows, np.empty_like(self.rows)])
+        return self.rows[self.filled:self.filled + rows]
+
     def take(self) -> np.ndarray | None:
         """The filled rows (a copy), the block emptied; None when there are none."""
         if not self.filled:
@@ -205,6 +212,29 @@ class Recorder:
                 stream.advance()
         except (KeyError, TypeError, ValueError, AttributeError):
             self._write_slow(component, time, values)
+        if self._row_writer is None and _time.monotonic() >= self._next_flush:
+            self.flush()
+
+    def write_rows(self, component: str, times: np.ndarray, values: dict[str, np.ndarray]) -> None:
+        """Append ``len(times)`` rows at once: ``values[port]`` holds one row of the port's values per
+        time (a 2-D array). The same rows as ``write`` called for each time."""
+        if self._closed:
+            self._check_open("write_rows")
+        stream = self._streams.get(component)
+        try:
+            with self._lock:
+                block = stream.reserve(len(times))
+                for name, columns, size in stream.columns:
+                    value = values[name]
+                    if value.shape != (len(times), size):
+                        raise ValueError
+                    block[:, columns] = value
+                block[:, 0] = times
+                stream.filled += len(times)
+        except (KeyError, TypeError, ValueError, AttributeError):  # write explains what is wrong
+            for i, time in enumerate(times):
+                self.write(component, float(time), {name: np.asarray(v)[i] for name, v in values.items()})
+            return
         if self._row_writer is None and _time.monotonic() >= self._next_flush:
             self.flush()
 

@@ -96,6 +96,23 @@ class WindowSums:
         self.ticks.append(int(tick))
         self.count += 1
 
+    def window_sum(self, end: int) -> np.ndarray | None:
+        """The running sum of the window ending at tick ``end`` (None before its first sample)."""
+        entry = self._sums.get(end)
+        return None if entry is None else entry[0]
+
+    def append_summed(self, tick: int, opened: np.ndarray | None) -> None:
+        """Count a sample that was already added into its window's sum (by the compiled loop);
+        ``opened`` is the window's new sum when the sample is its first."""
+        _check_order(self.ticks, tick)
+        end = -(-tick // self.window) * self.window
+        if opened is not None:
+            self._sums[end] = [opened, 1]
+        else:
+            self._sums[end][1] += 1
+        self.ticks.append(int(tick))
+        self.count += 1
+
     def prune(self, keep_from: int) -> None:
         """Drop the windows that end before ``keep_from`` (the dict holds them oldest first)."""
         sums = self._sums

@@ -1,0 +1,583 @@
+"""The compiled loop: stretches of in-process steps planned here and run in C (``compiled_loop.c``).
+
+Between two events that need the master itself (a worker's step starting or being collected, a
+component it cannot compile), a run is a stretch of steps of in-process FMUs: in the default
+scene, the catheter and the contact at 1 kHz for the 33 or 34 ticks between two 30 Hz tissue
+frames. Python's cost per step (routing values, reading outputs, filling histories) is about
+twice the models' own. Here each stretch is planned by the algorithm's own scheduler
+(:meth:`MultirateAlgorithm._decide_at`) and routing rules, and written as a flat program of FMI
+calls and copies that C runs in one go:
+
+* the steps, in the order the scheduler makes them, each ``fmi3Set*`` of an input connection
+  that the Python path would make (the same transition, key and bitwise comparison with the last
+  value set), ``fmi3DoStep``, the observed outputs' ``fmi3Get*``;
+* the samples other components read (copied to a tape), window sums of ``average`` transitions
+  added as the samples arrive, the ports the observers read (copied to the tape).
+
+Afterwards the master replays the stretch in Python (histories, observers, step counts) from the
+tape, so that everything downstream (recording, statistics, the next step's inputs) sees exactly
+what the Python path gives: the results are bit-identical (tested). The program stops at a call
+that fails, logs an error, or whose fmi3DoStep raises a flag; the master replays the steps before
+it and carries on from there in Python, reporting the failure as the Python path reports it.
+
+A component takes part when it runs in this process through the FMI binding, nobody paces its
+steps (``run --realtime`` keeps the Python path, where every step is timed), its connected inputs
+are Float64, its observed outputs are not 64-bit integers, and the connections between two such
+components use ``hold``. The rest of the scene steps in Python as before. Without a C compiler the
+whole run stays in Python (logged once).
+"""
+from __future__ import annotations
+
+import array
+import ctypes
+import logging
+from ctypes import c_bool, c_double, c_int64, c_void_p
+
+import numpy as np
+
+from . import transitions as tr
+from .errors import FmuCallError
+from .fmi3 import Fmi3Instance
+
+logger = logging.getLogger(__name__)
+
+#: Most steps in one stretch (the program's size; a stretch ends earlier at any event of its own)
+MAX_STEPS = 1024
+#: Stretches planned from the same schedule state are remembered (up to this many states)
+PLAN_CACHE_LIMIT = 10_000
+#: Tape ranges closer than this many values are copied as one
+_GAP = 16
+#: Rows of each component's tape (its outputs in a stretch): a stretch holds at most this many of its steps
+_TAPE_ROWS = MAX_STEPS
+_FLOAT64 = np.dtype(np.float64)
+
+OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW = range(8)
+#: an OP_SET of a value that is no producer's sample (a source's, an interpolation)
+NO_KEY = -2 ** 63
+DONE, CALL_FAILED, ERROR_LOGGED, STEP_FLAGS, BAD_OP, NOT_EXACT = range(6)
+#: numpy dtype of a port's native buffer -> compiled_loop.c's CAST_*
+_CASTS = {np.dtype(np.float64): 0, np.dtype(np.bool_): 1, np.dtype(np.int8): 2, np.dtype(np.uint8): 3,
+          np.dtype(np.int16): 4, np.dtype(np.uint16): 5, np.dtype(np.int32): 6, np.dtype(np.uint32): 7,
+          np.dtype(np.float32): 8, np.dtype(np.int64): 9, np.dtype(np.uint64): 10}
+
+
+class _Component(ctypes.Structure):
+    _fields_ = [("instance", c_void_p), ("do_step", c_void_p), ("logged_errors", c_void_p),
+                ("errors_seen", c_int64), ("step", c_int64), ("busy_ns", c_int64), ("started_ns", c_int64),
+                ("flags", c_bool * 4), ("last_time", c_double)]
+
+
+class _Port(ctypes.Structure):
+    _fields_ = [("component", c_int64), ("function", c_void_p), ("vrs", c_void_p), ("n_vrs", c_int64),
+                ("slot", c_void_p), ("native", c_void_p), ("size", c_int64), ("cast", c_int64),
+                ("last", c_void_p), ("last_valid", c_int64), ("last_key", c_int64), ("has_key", c_int64)]
+
+
+class _Window(ctypes.Structure):
+    _fields_ = [("sum", c_void_p), ("opened", c_int64)]
+
+
+class _Result(ctypes.Structure):
+    _fields_ = [("ops_done", c_int64), ("reason", c_int64), ("status", c_int64)]
+
+
+_library_state: dict = {}
+
+
+def load_program_runner():
+    """``run_program`` of the compiled library (built on first use), or None when it cannot be built."""
+    if "run" not in _library_state:
+        from .build import BuildError, compiled_loop_library
+
+        try:
+            library = ctypes.CDLL(str(compiled_loop_library()))
+        except (BuildError, OSError) as exc:
+            logger.warning("the master's compiled loop is not available, every step runs in Python: %s", exc)
+            _library_state["run"] = None
+        else:
+            run = library.run_program
+            run.restype = _Result
+            run.argtypes = [c_void_p, c_int64, c_int64, c_int64, c_void_p, c_void_p, c_void_p]
+            _library_state["run"] = run
+    return _library_state["run"]
+
+
+def _address(thing) -> int:
+    """The address of a ctypes function or of a numpy array's data."""
+    if isinstance(thing, np.ndarray):
+        return thing.__array_interface__["data"][0]
+    return ctypes.cast(thing, c_void_p).value
+
+
+class _Member:
+    """What the loop knows of one component that takes part: its C records and its tape."""
+
+    def __init__(self, comp, instance: Fmi3Instance):
+        self.comp = comp
+        self.instance = instance
+        self.routes: list = []          # its input connections (not parameters), in the scene's order
+        self.port_index: dict = {}      # route -> its input port's record index
+        self.last_values: dict = {}     # route -> the float64 buffer of the last value set
+        self.step_ops: tuple = ()       # the ops after its fmi3DoStep: read the outputs, stop the clock
+        self.tape_ports: list[tuple[str, int, int]] = []     # (port, offset in a tape row, size)
+        self.tape_offsets: dict[str, int] = {}
+        self.listener_ports: list[tuple[str, int, int]] = []
+        self.copies: list[tuple[int, int, int]] = []        # (offset in a tape row, output address, size)
+        self.windows: list = []         # (output address, size, WindowSums) of its average transitions
+        self.tape = np.empty((0, 0))    # its outputs in a stretch, one row per step
+        self.tape_address = 0
+
+
+class _Template:
+    """The program of one stretch from one schedule state, ticks counted from the stretch's start.
+
+    ``ops`` is rewritten in place where a stretch's values go (``sources``, ``patches``, windows).
+    """
+
+    def __init__(self):
+        self.ops = array.array("q")
+        self.steps: list[tuple] = []      # (rank, tick, row, index of its last op + 1, its window slots)
+        self.sources: list[tuple] = []    # (route, staging rows, [(row, tau)]): values of continuous sources
+        self.patches: list[tuple] = []    # (op index, route, tau): values read from histories that stay
+        self.windows: list[tuple] = []    # (WindowSums, end tick, size) per window slot
+        self.counts: dict[int, int] = {}  # rank -> steps in the stretch
+        self.first_tick: dict = {}        # route -> tau of its first patch (histories that stay)
+        self.last_tick: dict = {}         # route -> tau of its last patch
+
+
+class CompiledLoop:
+    """Runs the stretches of in-process steps of one :class:`MultirateAlgorithm` run in C."""
+
+    def __init__(self, algorithm, run_program):
+        self.algorithm = algorithm
+        self._run_program = run_program
+        comps = algorithm.ordered
+        self._records = (_Component * len(comps))()
+        self._ports: list[_Port] = []
+        self._port_objects: list = []   # the binding's records, for error messages (call names)
+        self.members: dict[int, _Member] = {}
+        for comp in comps:
+            if self._can_take_part(comp):
+                self.members[comp.rank] = self._member(comp)
+        # a connection between two members must be a hold (the value a consumer reads is a sample)
+        changed = True
+        while changed:
+            changed = False
+            for rank, member in list(self.members.items()):
+                if any(r.producer is not None and r.producer.rank in self.members
+                       and not isinstance(r.transition, tr.Hold) for r in member.routes):
+                    del self.members[rank]
+                    changed = True
+        self._port_array = (_Port * max(1, len(self._ports)))(*self._ports)
+        self._plans: dict = {}
+        self._windows = (_Window * 0)()
+        self.stretches = 0
+        self.steps = 0
+
+    @classmethod
+    def for_algorithm(cls, algorithm) -> "CompiledLoop | None":
+        """The loop for ``algorithm`` once it is initialized, or None when no component can take part."""
+        if algorithm.end >= 2 ** 53 or not any(cls._can_take_part(c) for c in algorithm.ordered):
+            return None  # (ticks beyond 2**53 would not convert to seconds as Python converts them)
+        run = load_program_runner()
+        if run is None:
+            return None
+        loop = cls(algorithm, run)
+        return loop if loop.members else None
+
+    # -- who takes part ------------------------------------------------------------------------------
+    @staticmethod
+    def _can_take_part(comp) -> bool:
+        instance = getattr(comp.host, "instance", None)
+        if comp.asynchronous or not isinstance(instance, Fmi3Instance) or instance.freed or instance.fatal:
+            return False
+        if comp.pre_step:  # someone times each step (real-time pacing)
+            return False
+        for listener in comp.listeners:
+            observer = getattr(listener, "__self__", None)
+            if observer is None or not hasattr(observer, "ports") or hasattr(observer, "subscribes"):
+                return False  # an observer that reads ports it does not name
+        for histories in comp.histories.values():
+            if any(type(h) not in (tr.SampleHistory, tr.WindowSums) for h in histories):
+                return False
+        if any(g.native.dtype not in _CASTS for g in instance.output_groups):
+            return False
+        ports = instance.input_ports
+        for route in comp.routes:
+            if route.parameter:
+                continue
+            port = ports.get(route.port)
+            if port is None or (port.cast and port.native.dtype not in _CASTS):
+                return False
+        return True
+
+    def _member(self, comp) -> _Member:
+        instance = comp.host.instance
+        member = _Member(comp, instance)
+        record = self._records[comp.rank]
+        record.instance = instance._live
+        record.do_step = _address(instance.library.functions["fmi3DoStep"])
+        record.logged_errors = _address(instance.logged_errors)
+        record.step = comp.step
+        for route in comp.routes:
+            if route.parameter:
+                continue
+            port = instance.input_ports[route.port]
+            last = np.zeros(port.size)
+            member.routes.append(route)
+            member.port_index[route] = len(self._ports)
+            member.last_values[route] = last
+            self._ports.append(_Port(comp.rank, _address(port.setter), ctypes.addressof(port.vr), 1,
+                                     _address(port.slot), _address(port.native), port.size,
+                                     _CASTS[port.native.dtype], _address(last), 0, 0, 0))
+            self._port_objects.append(port)
+        step_ops = []
+        for group in instance.output_groups:
+            step_ops += (OP_GET, len(self._ports), 0, 0)
+            self._ports.append(_Port(comp.rank, _address(group.getter), ctypes.addressof(group.vrs), group.count,
+                                     _address(group.slot), _address(group.native), group.size,
+                                     _CASTS[group.native.dtype], None, 0, 0, 0))
+            self._port_objects.append(group)
+        member.step_ops = tuple(step_ops) + (OP_END, comp.rank, 0, 0)
+        # The tape: the observed output buffer's ranges that hold what histories keep and observers read.
+        wanted: list[str] = []
+        for listener in comp.listeners:
+            for name in listener.__self__.ports(comp.name):
+                if name not in wanted:
+                    wanted.append(name)
+        listened = set(wanted)
+        for name, histories in comp.histories.items():
+            if any(h.keeps_values for h in histories) and name not in wanted:
+                wanted.append(name)
+        views = instance.output_views
+        buffer_start = min((_address(v) for v in views.values()), default=0)
+        spans = sorted(((_address(views[n]) - buffer_start) // 8, views[n].size, n) for n in wanted)
+        ranges: list[list[int]] = []  # [buffer offset, size] of each copied range
+        for start, size, name in spans:
+            if ranges and start <= ranges[-1][0] + ranges[-1][1] + _GAP:
+                ranges[-1][1] = max(ranges[-1][1], start + size - ranges[-1][0])
+            else:
+                ranges.append([start, size])
+        width = 0
+        for start, size in ranges:
+            member.copies.append((width, buffer_start + 8 * start, size))
+            for name_start, name_size, name in spans:
+                if start <= name_start < start + size:
+                    member.tape_offsets[name] = width + name_start - start
+            width += size
+        for name in wanted:
+            item = (name, member.tape_offsets[name], views[name].size)
+            member.tape_ports.append(item)
+            if name in listened:
+                member.listener_ports.append(item)
+        member.windows = [(_address(views[name]), views[name].size, history)
+                          for name, histories in comp.histories.items() for history in histories
+                          if not history.keeps_values]
+        member.tape = np.empty((_TAPE_ROWS, width))
+        member.tape_address = _address(member.tape)
+        return member
+
+    # -- planning ------------------------------------------------------------------------------------
+    def _plan(self) -> list:
+        """``[steps, span, template]``: the steps ``(rank, tick)`` the scheduler makes next while they
+        are members' steps, ticks counted from the slowest component's; how far they reach; their
+        program once made. Remembered per schedule state, except near the end of the run."""
+        algorithm = self.algorithm
+        comps = algorithm.ordered
+        times = [c.time for c in comps]
+        running = [c.running for c in comps]
+        t_min = min(times)
+        key = None
+        if t_min < algorithm._cache_until:
+            key = (t_min % algorithm._period, *[t - t_min for t in times], *running)
+            cached = self._plans.get(key)
+            if cached is not None and t_min + cached[1] < algorithm._cache_until:
+                return cached
+        members = self.members
+        steps: list[tuple[int, int]] = []
+        lookahead = algorithm._lookahead
+        while len(steps) < MAX_STEPS:
+            decision = algorithm._decide_at(times, running, lookahead)
+            if decision is None or not decision[0] or decision[1] not in members:
+                break
+            rank = decision[1]
+            steps.append((rank, times[rank] - t_min))
+            times[rank] += comps[rank].step
+        plan = [steps, max(times) - t_min, None]
+        if key is not None and len(self._plans) < PLAN_CACHE_LIMIT:
+            self._plans[key] = plan
+        return plan
+
+    def _template(self, steps: list[tuple[int, int]], t0: int) -> _Template:
+        """The program of a stretch of ``steps`` (ticks from the stretch's start ``t0``): what is known
+        before its values are (see :meth:`_fill`). It serves every stretch from the same schedule
+        state, whose start is the same modulo the hyperperiod (which each window divides)."""
+        comps = self.algorithm.ordered
+        members = self.members
+        template = _Template()
+        ops = template.ops
+        rows: dict[int, int] = {}
+        produced: dict[int, list[tuple[int, int]]] = {rank: [] for rank, _ in steps}  # (sample tick, row address)
+        staging: dict = {}   # route -> [(row, tau)]
+        windows: dict = {}   # (WindowSums, end tick) -> slot
+        for rank, tick in steps:
+            comp = comps[rank]
+            member = members[rank]
+            ops.extend((OP_BEGIN, rank, 0, 0))
+            for route in member.routes:
+                tau = tick + route.need_offset
+                index = member.port_index[route]
+                if route.source is not None:  # its value at tau, written into a row of its staging array
+                    if route not in staging:
+                        staging[route] = (np.empty((MAX_STEPS, member.last_values[route].size)), [])
+                    values, items = staging[route]
+                    items.append((len(items), tau))
+                    ops.extend((OP_SET, index, _address(values[len(items) - 1]), NO_KEY))
+                    continue
+                producer = route.producer.rank
+                if producer in produced:  # a hold of a sample made in this stretch, if there is one by tau
+                    sample = next(((t, address) for t, address in reversed(produced[producer]) if t <= tau), None)
+                    if sample is not None:
+                        offset = members[producer].tape_offsets[route.spec.source_port]
+                        ops.extend((OP_SET, index, sample[1] + 8 * offset, sample[0]))
+                        continue
+                # a sample from before the stretch (its producer's history does not change in it)
+                template.patches.append((len(ops) // 4, route, tau))
+                template.first_tick.setdefault(route, tau)
+                template.last_tick[route] = tau
+                ops.extend((OP_NOP, index, 0, 0))
+            ops.extend((OP_STEP, rank, tick, 0))
+            ops.extend(member.step_ops)
+            sample_tick = tick + comp.step
+            row = rows.get(rank, 0)
+            rows[rank] = row + 1
+            row_address = member.tape_address + 8 * member.tape.shape[1] * row
+            for offset, address, size in member.copies:
+                ops.extend((OP_COPY, row_address + 8 * offset, address, size))
+            produced[rank].append((sample_tick, row_address))
+            slots = []
+            for address, size, history in member.windows:
+                end = -(-(t0 + sample_tick) // history.window) * history.window - t0  # from the stretch's start
+                slot = windows.setdefault((history, end, size), len(windows))
+                ops.extend((OP_WINDOW, slot, address, size))
+                slots.append(slot)
+            template.steps.append((rank, tick, row, len(ops) // 4, slots))
+        template.counts = rows
+        template.sources = [(route, values, items) for route, (values, items) in staging.items()]
+        template.windows = list(windows)
+        return template
+
+    # -- one stretch ---------------------------------------------------------------------------------
+    def run_stretch(self, clock) -> int:
+        """Make the steps of the stretch that starts at the scheduler's next decision; returns how
+        many were made (0: the stretch is too short, the caller steps as before)."""
+        plan = self._plan()
+        steps, _, template = plan
+        if len(steps) < 2:
+            return 0
+        t0 = min(c.time for c in self.algorithm.ordered)
+        if template is None:
+            template = plan[2] = self._template(steps, t0)
+        fill = self._fill(template, t0)
+        if fill is None:
+            return 0
+        return self._execute(template, t0, fill, clock)
+
+    def _fill(self, template: _Template, t0: int):
+        """Write this stretch's values into its template: the sources' values at their ticks, the
+        samples read from histories that stay, the windows' sums. None: the Python path steps."""
+        evaluate = self.algorithm._evaluate
+        for route, rows, items in template.sources:
+            port = route.spec.source_port
+            for row, tau in items:
+                value = evaluate(route.source, t0 + tau)[port]
+                if value.dtype != _FLOAT64 or value.size != rows.shape[1]:
+                    return None  # compared as its own type by the Python path
+                rows[row] = value
+        ops = template.ops
+        keep = []
+        stable = set()  # routes whose value is one sample all through the stretch: set once, at most
+        for op, route, tau in template.patches:
+            k = 4 * op
+            history = route.history
+            if route in stable or not history.ticks:
+                ops[k] = OP_NOP  # the Python path finds the same key, or no sample, and sets nothing
+                continue
+            if route.last_value is not None and route.last_value.dtype != _FLOAT64:
+                return None  # compared as its own type by the Python path
+            try:
+                value, key = route.transition.value(t0 + tau)
+            except (LookupError, ValueError):
+                return None  # the Python path reports it
+            if value.dtype != _FLOAT64 or not value.flags.c_contiguous:
+                return None
+            keep.append(value)
+            ops[k], ops[k + 2], ops[k + 3] = OP_SET, _address(value), NO_KEY if key is None else key - t0
+            if key is not None and tau == template.first_tick[route] and not _sample_between(
+                    history, t0 + tau, t0 + template.last_tick[route]):
+                stable.add(route)
+        windows = (_Window * max(1, len(template.windows)))()
+        opened = {}
+        for slot, (history, end, size) in enumerate(template.windows):
+            existing = history.window_sum(t0 + end)
+            if existing is None:
+                existing = opened[slot] = np.empty(size)
+            windows[slot].opened = int(slot not in opened)
+            windows[slot].sum = _address(existing)
+            keep.append(existing)
+        return keep, windows, opened
+
+    def _execute(self, template: _Template, t0: int, fill, clock) -> int:
+        keep, windows, opened = fill
+        algorithm = self.algorithm
+        records = self._records
+        members = self.members
+        ports = self._port_array
+        taking_part = [members[rank] for rank in template.counts]
+        for member in taking_part:
+            record = records[member.comp.rank]
+            record.busy_ns = 0
+            record.errors_seen = int(member.instance.logged_errors[0])
+            for route, last in member.last_values.items():
+                port = ports[member.port_index[route]]
+                value = route.last_value
+                port.last_valid = value is not None
+                if value is not None:
+                    last[:] = value.reshape(-1)
+                port.has_key = route.last_key is not None
+                port.last_key = route.last_key if route.last_key is not None else 0
+        marks = {member.comp.rank: len(member.instance.messages) for member in taking_part}
+        ops = template.ops
+        result = self._run_program(ops.buffer_info()[0], len(ops) // 4, t0, algorithm.base,
+                                   ctypes.addressof(records), ctypes.addressof(ports), ctypes.addressof(windows))
+        stopped_at = result.ops_done
+        made = 0
+        for step in template.steps:
+            if step[3] > stopped_at:
+                break
+            made += 1
+        self._replay(template, t0, made, opened)
+        for member in taking_part:  # the binding's, the host's and the routes' view of where each is
+            comp = member.comp
+            comp.busy += records[comp.rank].busy_ns * 1e-9
+            for route, last in member.last_values.items():
+                port = ports[member.port_index[route]]
+                if port.last_valid and (route.last_value is None or route.last_value.tobytes() != last.tobytes()):
+                    route.last_value = last.copy()
+                    route.last_bytes = route.last_value.tobytes()
+                if port.has_key:
+                    route.last_key = port.last_key
+                history = route.history
+                # the Python path's shortcut: nothing arrived since the route took the newest sample
+                route.seen = history.count if (history is not None and history.ticks and port.has_key
+                                               and route.last_key == history.ticks[-1]) else -1
+        self.stretches += 1
+        self.steps += made
+        if result.reason == DONE:
+            return made
+        rank, tick = template.steps[made][:2]
+        k = 4 * stopped_at
+        self._stopped(rank, t0 + tick, tuple(ops[k:k + 4]), result, marks[rank], clock)
+        return made + 1
+
+    def _replay(self, template: _Template, t0: int, made: int, opened: dict) -> None:
+        """What the Python path does after each of the first ``made`` steps (``_finish``, ``_store``),
+        from the tapes: step counts, histories, observers."""
+        comps = self.algorithm.ordered
+        by_rank: dict[int, list] = {}
+        for rank, tick, row, _, slots in template.steps[:made]:
+            by_rank.setdefault(rank, []).append((t0 + tick, row, slots))
+        for rank, steps in by_rank.items():
+            member = self.members[rank]
+            comp = member.comp
+            first_step = comp.steps
+            ticks = [tick + comp.step for tick, _, _ in steps]
+            rows = member.tape[steps[0][1]:steps[-1][1] + 1]
+            comp.time = ticks[-1]
+            comp.steps += len(steps)
+            member.instance.time = comp.time / self.algorithm.base
+            comp.host.terminate_requested = comp.host.early_return = False
+            comp.host.last_successful_time = member.instance.time
+            comp.outputs = member.instance.output_views
+            kept = {}
+            for name, histories in comp.histories.items():
+                if any(h.keeps_values for h in histories):
+                    offset = member.tape_offsets[name]
+                    kept[name] = rows[:, offset:offset + comp.outputs[name].size].copy()  # one copy for all samples
+            window_index = 0
+            for name, histories in comp.histories.items():
+                for history in histories:
+                    if history.keeps_values:
+                        for tick, sample in zip(ticks, kept[name]):
+                            history.append(tick, sample)
+                    else:
+                        for tick, (_, _, slots) in zip(ticks, steps):
+                            slot = slots[window_index]
+                            history.append_summed(tick, opened.pop(slot, None))
+                        window_index += 1
+            if comp.listeners:
+                columns = {name: rows[:, offset:offset + size] for name, offset, size in member.listener_ports}
+                for listener in comp.listeners:
+                    stepped_block = getattr(listener.__self__, "stepped_block", None)
+                    if stepped_block is not None:
+                        stepped_block(comp, ticks, columns, first_step)
+                        continue
+                    steps_after = comp.steps
+                    for i, tick in enumerate(ticks):  # an observer that takes one step at a time
+                        comp.steps = first_step + i + 1
+                        listener(comp, tick, {name: values[i] for name, values in columns.items()})
+                    comp.steps = steps_after
+        for rank in by_rank:
+            comp = comps[rank]
+            for consumer, route in comp.consumers:
+                route.history.prune(consumer.time - 2 * comp.step - consumer.step)
+
+    def _stopped(self, rank: int, tick: int, op, result, mark: int, clock) -> None:
+        """The program stopped inside the step of ``rank`` at ``tick``: report or finish it as Python would."""
+        algorithm = self.algorithm
+        member = self.members[rank]
+        comp = member.comp
+        instance = member.instance
+        t = tick / algorithm.base
+        instance.time = t
+        code = op[0]
+        if result.reason == STEP_FLAGS:  # the step went through; what follows it is the Python path's
+            record = self._records[rank]
+            terminate, early = bool(record.flags[1]), bool(record.flags[2])
+            last = record.last_time if terminate or early else (tick + comp.step) / algorithm.base
+            instance.time = last
+            host = comp.host
+            host.terminate_requested, host.early_return, host.last_successful_time = terminate, early, last
+            comp.running = True
+            comp.started_at = clock()
+            algorithm._finish(comp, clock)
+            return
+        if result.reason == BAD_OP:
+            raise RuntimeError(f"the compiled loop met an unknown operation {code} (a bug)")
+        if result.reason == NOT_EXACT and code == OP_GET:  # a 64-bit integer beyond 2**53: the binding names it
+            instance.time = (tick + comp.step) / algorithm.base
+            instance._refuse_wide(self._port_objects[op[1]])
+        if result.reason == NOT_EXACT:  # the binding's own check says what and raises, as in the Python path
+            try:
+                instance.push_port(self._port_objects[op[1]])
+            except ValueError as exc:
+                raise FmuCallError(comp.name, "fmi3DoStep", t, f"{type(exc).__name__}: {exc}") from exc
+            raise RuntimeError("the compiled loop and the binding disagree on an input's cast (a bug)")
+        if code == OP_GET:
+            instance.time = (tick + comp.step) / algorithm.base  # the step itself went through
+        if code == OP_STEP:
+            instance._step_problem(t, int(result.status), mark)
+            raise FmuCallError(comp.name, "fmi3DoStep", t, instance._logged_reason(mark), int(result.status))
+        call = self._port_objects[op[1]].call
+        instance._check(call, int(result.status), mark)
+        raise FmuCallError(comp.name, call, instance.time, instance._logged_reason(mark), int(result.status))
+
+
+def _sample_between(history, after: int, until: int) -> bool:
+    """Whether ``history`` holds a sample with tick in ``(after, until]``."""
+    for tick in reversed(history.ticks):
+        if tick <= after:
+            return False
+        if tick <= until:
+            return True
+    return False

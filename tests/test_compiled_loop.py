@@ -1,0 +1,191 @@
+"""The master's compiled loop (orchestration/compiled_loop.py, .c) against the Python path.
+
+The compiled loop runs stretches of in-process FMU steps in C from a plan the Python master makes;
+it must give the same run as the Python path, to the bit: every recorded row, every surface frame,
+the summary's statistics and the final outputs. Each test runs the same scene both ways with the
+real FMUs and the real master, and checks that the compiled loop really made the steps (a loop
+that quietly stepped nothing would pass the comparison).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from conformance_fmus import build_all
+from orchestration.master import Simulation
+from orchestration.recording import read_stream
+from orchestration.scene import load_scene, scene_from_dict
+
+STATISTICS = ("peaks", "energy", "operator_warnings")
+
+
+@pytest.fixture(scope="module")
+def built(tissue_fmu, contact_fmu, catheter_fmu):
+    """The shipped scenes use fmus/: build them from this checkout first."""
+    from orchestration.build import ensure_fmus_built
+
+    ensure_fmus_built(quiet=True)
+
+
+def _run(scene, out: Path, compiled: bool, **options):
+    simulation = Simulation(scene, out, progress=False, plots=False, compiled_loop=compiled, **options)
+    summary = simulation.run()
+    return simulation, summary
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != "summary.json"}
+
+
+def _same_run(scene, tmp_path: Path, **options):
+    """Run ``scene`` compiled and in Python; assert the same results; return both simulations and summaries."""
+    compiled, compiled_summary = _run(scene, tmp_path / "compiled", True, **options)
+    python, python_summary = _run(scene, tmp_path / "python", False, **options)
+    assert compiled_summary["status"] == python_summary["status"]
+    assert compiled_summary["error"] == python_summary["error"]
+    compiled_files, python_files = _files(tmp_path / "compiled"), _files(tmp_path / "python")
+    assert sorted(compiled_files) == sorted(python_files)
+    for name, data in compiled_files.items():
+        assert data == python_files[name], f"{name} differs"
+    for key in STATISTICS:
+        assert compiled_summary.get(key) == python_summary.get(key), key
+    for name, comp in compiled_summary["components"].items():
+        assert comp["steps"] == python_summary["components"][name]["steps"], name
+    for name, outputs in compiled.final_outputs.items():
+        for port, value in outputs.items():
+            assert value.tobytes() == python.final_outputs[name][port].tobytes(), f"{name}.{port}"
+    assert python.algorithm.compiled_loop is None
+    return (compiled, compiled_summary), (python, python_summary)
+
+
+def _in_process_steps(simulation, summary) -> int:
+    return sum(c["steps"] for name, c in summary["components"].items() if c["hosting"] == "in-process"
+               and name in {m.comp.name for m in simulation.algorithm.compiled_loop.members.values()})
+
+
+@pytest.mark.parametrize("scene_name, duration", [("aaa_endovascular", 1.0), ("catheter_tube", 1.5),
+                                                  ("tissue_indentation", 0.5)])
+def test_the_compiled_loop_gives_the_python_paths_run_bit_for_bit(built, scene_name, duration, tmp_path):
+    scene = load_scene(scene_name, {"duration": duration})
+    (compiled, summary), _ = _same_run(scene, tmp_path)
+    assert summary["status"] == "completed"
+    loop = compiled.algorithm.compiled_loop
+    assert loop is not None and loop.members
+    made = _in_process_steps(compiled, summary)
+    # all but the steps at the edges of a stretch (a stretch needs two steps or more) run compiled
+    assert loop.steps >= 0.95 * made, (loop.steps, made)
+
+
+def test_the_default_scene_with_every_fmu_in_this_process(built, tmp_path):
+    """In process, the 30 Hz tissue steps in Python between the stretches (it reads the contact
+    forces through an average, which the compiled loop leaves to Python)."""
+    scene = load_scene("aaa_endovascular", {"duration": 0.5})
+    (compiled, summary), _ = _same_run(scene, tmp_path, hosting="in-process")
+    loop = compiled.algorithm.compiled_loop
+    assert {m.comp.name for m in loop.members.values()} == {"catheter", "contact"}
+    assert loop.steps >= 0.95 * (summary["components"]["catheter"]["steps"] + summary["components"]["contact"]["steps"])
+
+
+def _tube_scene(tmp_path: Path, insertion: list[float], times: list[float]) -> Path:
+    text = (Path(__file__).resolve().parent.parent / "scenes" / "catheter_tube.toml").read_text()
+    text = text.replace('outputs = { insertion = [0.06, 0.06, 0.09, 0.09]',
+                        f'outputs = {{ insertion = {insertion}')
+    text = text.replace("times = [0.0, 0.2, 2.2, 3.0]", f"times = {times}")
+    path = tmp_path / "tube.toml"  # its FMUs are looked up in fmus/
+    path.write_text(text)
+    return path
+
+
+def test_a_call_that_fails_inside_a_stretch_is_reported_as_the_python_path_reports_it(built, tmp_path):
+    """The operator pushes the insertion out of the catheter's plausible range at about 0.52 s:
+    fmi3SetFloat64 fails in the middle of a stretch. The same error (component, call, time, the
+    FMU's reason) and the same rows up to it."""
+    path = _tube_scene(tmp_path, [0.06, 0.06, 500.0, 500.0], [0.0, 0.5, 0.6, 3.0])
+    scene = load_scene(path, {"duration": 1.0})
+    (compiled, summary), _ = _same_run(scene, tmp_path)
+    assert summary["status"] == "failed"
+    assert "catheter" in summary["error"] and "fmi3SetFloat64(insertion)" in summary["error"]
+    assert "plausible range" in summary["error"]
+    t, _ = read_stream(tmp_path / "compiled" / "catheter.csv")
+    assert 0.5 < t[-1] < 0.6  # the rows of every step before the failure are on disk
+    assert compiled.algorithm.compiled_loop.steps > 900
+
+
+def test_real_time_pacing_keeps_every_step_in_python(built, tmp_path):
+    """A paced run times each step: the loop stays out of it."""
+    scene = load_scene("catheter_tube", {"duration": 0.05})
+    simulation, summary = _run(scene, tmp_path / "paced", True, realtime=True)
+    assert summary["status"] == "completed"
+    assert simulation.algorithm.compiled_loop is None
+
+
+@pytest.fixture(scope="module")
+def conformance_fmus(tmp_path_factory) -> dict[str, Path]:
+    return build_all(tmp_path_factory.mktemp("conformance_fmus"))
+
+
+def _component(fmu: Path, step: float, parameters: dict | None = None) -> dict:
+    return {"path": str(fmu), "step": step, "parameters": parameters or {}}
+
+
+def test_third_party_fmus_of_every_numeric_type_run_compiled(conformance_fmus, tmp_path):
+    """FMUs written in C by others (tests/conformance): Int8 -> Int32 and Int32 -> Float64 inputs
+    set from the samples of a stretch, Boolean, Int64 and enumeration outputs read; the same rows."""
+    data = {
+        "scene": {"name": "types", "duration": 0.2, "hosting": "in-process"},
+        "fmu": {"a": _component(conformance_fmus["Types"], 0.01, {"label": "compiled", "blob": "00ff10",
+                                                                   "mode": "Fast"}),
+                "b": _component(conformance_fmus["Types"], 0.01),
+                "ramp": _component(conformance_fmus["Ramp"], 0.004),
+                "fixed": _component(conformance_fmus["FixedStep"], 0.004)},
+        "connection": [{"from": "a.count", "to": "b.x"}, {"from": "a.small", "to": "b.n"},
+                       {"from": "a.mode_out", "to": "b.mode"}, {"from": "a.distance", "to": "b.position"}],
+        "record": {"a": ["count", "flag", "mode_out", "small"], "b": ["x_echo", "n_echo", "mode_out"],
+                   "ramp": ["y", "calls"], "fixed": ["x", "steps"]},
+    }
+    scene = scene_from_dict(data, tmp_path)
+    (compiled, summary), _ = _same_run(scene, tmp_path)
+    assert summary["status"] == "completed"
+    loop = compiled.algorithm.compiled_loop
+    assert {"a", "b", "ramp", "fixed"} <= {m.comp.name for m in loop.members.values()}
+    assert loop.steps >= 0.9 * sum(c["steps"] for c in summary["components"].values())
+    t, b = read_stream(tmp_path / "compiled" / "b.csv")
+    assert b["x_echo"][1:].tolist() == [float(k) for k in range(1, 21)]  # a's count, gauss-seidel, through C
+
+
+@pytest.mark.parametrize("discard", [False, True])
+def test_terminate_simulation_inside_a_stretch_ends_the_run_where_python_ends_it(conformance_fmus, tmp_path,
+                                                                                  discard):
+    data = {
+        "scene": {"name": "terminator", "duration": 1.0, "hosting": "in-process"},
+        "fmu": {"term": _component(conformance_fmus["Terminator"], 0.01, {"stop_at": 0.25, "discard": discard}),
+                "ramp": _component(conformance_fmus["Ramp"], 0.01)},
+        "record": {"term": ["y"], "ramp": ["calls"]},
+    }
+    scene = scene_from_dict(data, tmp_path)
+    (compiled, summary), _ = _same_run(scene, tmp_path)
+    assert summary["status"] == "terminated"
+    assert summary["simulated_time_s"] == pytest.approx(0.25)
+    assert compiled.algorithm.compiled_loop.steps > 20
+    t, term = read_stream(tmp_path / "compiled" / "term.csv")
+    assert t[-1] == 0.25 and term["y"][-1] == 0.25
+    assert json.loads((tmp_path / "compiled" / "summary.json").read_text())["status"] == "terminated"
+
+
+def test_a_64_bit_output_beyond_float64_is_refused_as_the_python_path_refuses_it(conformance_fmus, tmp_path):
+    data = {
+        "scene": {"name": "wide", "duration": 0.1, "hosting": "in-process"},
+        "fmu": {"a": _component(conformance_fmus["Types"], 0.01, {"big_offset": 2 ** 53 - 5}),
+                "ramp": _component(conformance_fmus["Ramp"], 0.01)},
+        "record": {"a": ["big"], "ramp": ["calls"]},
+    }
+    scene = scene_from_dict(data, tmp_path)
+    (compiled, summary), _ = _same_run(scene, tmp_path)
+    assert summary["status"] == "failed" and "beyond 2**53" in summary["error"], summary["error"]
+    assert "fmi3GetInt64(big)" in summary["error"] and "t = 0.06" in summary["error"]
+    assert compiled.algorithm.compiled_loop.steps >= 8  # the five steps of each before, in stretches
+    t, a = read_stream(tmp_path / "compiled" / "a.csv")
+    assert a["big"].tolist()[-1] == 2 ** 53 and t[-1] == 0.05
