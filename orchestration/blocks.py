@@ -148,6 +148,13 @@ class Source:
     def evaluate(self, t: float) -> dict[str, np.ndarray]:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def evaluate_many(self, times: np.ndarray) -> dict[str, np.ndarray]:
+        """The outputs at each of ``times`` (s): ``{name: array of one flat row per time}``, each row
+        bit for bit ``evaluate(t)[name]`` (the compiled loop fills a stretch's inputs with it)."""
+        rows = [self.evaluate(float(t)) for t in times]
+        return {name: np.array([np.asarray(row[name], dtype=np.float64).reshape(-1) for row in rows])
+                for name in self.ports}
+
 
 def _check_times(problems, times, key="times"):
     """Knot times: a non-empty list of finite, strictly increasing numbers; the array or None."""
@@ -263,6 +270,22 @@ class PiecewiseLinearSource(Source):
         w = (t - t0) / (t1 - t0)
         # (1-w) v0 + w v1 is v0 exactly at w = 0 (knots are hit through w = 0 only)
         return (1.0 - w) * self._values[i - 1] + w * self._values[i]
+
+    def evaluate_many(self, times: np.ndarray) -> dict[str, np.ndarray]:
+        times = np.asarray(times, dtype=np.float64)
+        if not np.isfinite(times).all():
+            return super().evaluate_many(times)  # evaluate says what is wrong
+        knots, values = self.times, self._values
+        i = np.searchsorted(knots, times, side="right")  # as bisect_right: knots[i-1] <= t < knots[i]
+        out = values[np.maximum(i - 1, 0)]  # held: the first row before the first knot, the last after
+        if not self._hold:
+            inner = (i > 0) & (i < len(knots))
+            if inner.any():
+                k = i[inner]
+                w = (times[inner] - knots[k - 1]) / (knots[k] - knots[k - 1])
+                # the IEEE operations of evaluate, elementwise: (1 - w) v0 + w v1
+                out[inner] = (1.0 - w)[:, None] * values[k - 1] + w[:, None] * values[k]
+        return {out_name: out[:, s] for out_name, s in self._slice_list}
 
     def evaluate(self, t: float) -> dict[str, np.ndarray]:
         if not (type(t) is float and math.isfinite(t)):

@@ -137,7 +137,7 @@ class _Template:
     def __init__(self):
         self.ops = array.array("q")
         self.steps: list[tuple] = []      # (rank, tick, row, index of its last op + 1, its window slots)
-        self.sources: list[tuple] = []    # (route, staging rows, [(row, tau)]): values of continuous sources
+        self.sources: list[tuple] = []    # (source, its ticks, [(port, staging rows)]): continuous sources' values
         self.patches: list[tuple] = []    # (op index, route, tau): values read from histories that stay
         self.windows: list[tuple] = []    # (WindowSums, end tick, size) per window slot
         self.counts: dict[int, int] = {}  # rank -> steps in the stretch
@@ -363,7 +363,12 @@ class CompiledLoop:
                 slots.append(slot)
             template.steps.append((rank, tick, row, len(ops) // 4, slots))
         template.counts = rows
-        template.sources = [(route, values, items) for route, (values, items) in staging.items()]
+        groups: dict = {}  # the routes of one source read at the same ticks: evaluated once
+        for route, (values, items) in staging.items():
+            ticks = tuple(tau for _, tau in items)
+            group = groups.setdefault((id(route.source), ticks), (route.source, np.array(ticks, dtype=np.int64), []))
+            group[2].append((route.spec.source_port, values))
+        template.sources = list(groups.values())
         template.windows = list(windows)
         return template
 
@@ -386,14 +391,15 @@ class CompiledLoop:
     def _fill(self, template: _Template, t0: int):
         """Write this stretch's values into its template: the sources' values at their ticks, the
         samples read from histories that stay, the windows' sums. None: the Python path steps."""
-        evaluate = self.algorithm._evaluate
-        for route, rows, items in template.sources:
-            port = route.spec.source_port
-            for row, tau in items:
-                value = evaluate(route.source, t0 + tau)[port]
-                if value.dtype != _FLOAT64 or value.size != rows.shape[1]:
+        base = self.algorithm.base
+        for source, ticks, targets in template.sources:
+            # int64 / int: correctly rounded below 2**53, the times algorithm.seconds gives
+            values = source.evaluate_many((ticks + t0) / base)
+            for port, rows in targets:
+                value = values[port]
+                if value.dtype != _FLOAT64 or value.shape != (len(ticks), rows.shape[1]):
                     return None  # compared as its own type by the Python path
-                rows[row] = value
+                rows[:len(ticks)] = value
         ops = template.ops
         keep = []
         stable = set()  # routes whose value is one sample all through the stretch: set once, at most

@@ -524,3 +524,24 @@ def test_piecewise_linear_evaluate_on_floats_equals_the_array_formula_bitwise():
         row = source._row(float(t))
         values = source.evaluate(float(t))
         assert values["a"].tobytes() == row[0:1].tobytes() and values["b"].tobytes() == row[1:4].tobytes()
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "hold"])
+def test_evaluate_many_is_evaluate_bit_for_bit(interpolation):
+    """The compiled loop fills a stretch's inputs with evaluate_many; the Python path calls evaluate."""
+    src = PiecewiseLinearSource("op", [0.0, 0.2, 2.5, 4.0], {"insertion": [0.07, 0.07, 0.084, 0.084],
+                                                            "force": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0],
+                                                                      [7.0, 8.0, 9.5], [0.1, 0.2, 0.3]]},
+                                interpolation=interpolation)
+    rng = np.random.default_rng(7)
+    # random times, the knots themselves, before the first and after the last, and a 1 kHz grid of tick / base
+    times = np.concatenate([rng.uniform(-1.0, 5.0, 2000), [0.0, -0.0, 0.2, 2.5, 4.0],
+                            np.arange(0, 12000, dtype=np.int64) / 3000])
+    many = src.evaluate_many(times)
+    for k, t in enumerate(times):
+        one = src.evaluate(float(t))
+        for name in ("insertion", "force"):
+            assert many[name][k].tobytes() == np.asarray(one[name]).reshape(-1).tobytes(), (name, t)
+    surface = RigidSurfaceSource("wall", "plane", center=[0.0, 0.0, 0.0], normal=[0.0, 0.0, 1.0])
+    rows = surface.evaluate_many(np.array([0.0, 0.5]))  # the generic one: evaluate at each time
+    assert rows["positions"][1].tobytes() == surface.evaluate(0.5)["positions"].reshape(-1).tobytes()
