@@ -31,6 +31,11 @@ initial outputs of those already initialized, including parameters such as the s
 
 Observers (:mod:`.observers`) see every step's outputs; the algorithm knows nothing of files,
 statistics or wall-clock pacing.
+
+The compiled loop (:mod:`.compiled_loop`) makes the stretches of in-process steps between two
+events that need this module (a worker's step starting or collected) in C: planned with
+:meth:`MultirateAlgorithm._decide_at` and these routing rules, replayed into the histories and
+observers afterwards; the same calls with the same values as stepping here (tested bitwise).
 """
 from __future__ import annotations
 

@@ -306,7 +306,7 @@ def ensure_fmus_built(quiet: bool = False) -> None:
     try:  # the master's compiled loop, so that the first run does not compile it while it is timed
         compiled_loop_library()
     except BuildError as exc:
-        logger.warning("%s; runs step every FMU from Python", exc)
+        logger.warning("%s; runs make every step from Python", exc)
     warm_numba_cache(quiet)
 
 

@@ -21,9 +21,10 @@ that fails, logs an error, or whose fmi3DoStep raises a flag; the master replays
 it and carries on from there in Python, reporting the failure as the Python path reports it.
 
 A component takes part when it runs in this process through the FMI binding, nobody paces its
-steps (``run --realtime`` keeps the Python path, where every step is timed), its connected inputs
-are Float64, its observed outputs are not 64-bit integers, and the connections between two such
-components use ``hold``. The rest of the scene steps in Python as before. Without a C compiler the
+steps (``run --realtime`` keeps the Python path, where every step is timed), its connected and
+observed ports are numbers (every numeric type and Boolean; the casts to and from float64 are
+checked as the binding checks them), and the connections between two such components use
+``hold``. The rest of the scene steps in Python between the stretches. Without a C compiler the
 whole run stays in Python (logged once).
 """
 from __future__ import annotations
@@ -47,8 +48,9 @@ MAX_STEPS = 1024
 PLAN_CACHE_LIMIT = 10_000
 #: Tape ranges closer than this many values are copied as one
 _GAP = 16
-#: Rows of each component's tape (its outputs in a stretch): a stretch holds at most this many of its steps
-_TAPE_ROWS = MAX_STEPS
+#: Bytes of one component's tape (its outputs in a stretch, a row per step): a stretch holds at most
+#: as many of its steps as fit (at least 16), so that a component with large outputs stays small
+_TAPE_BYTES = 8 << 20
 _FLOAT64 = np.dtype(np.float64)
 
 OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW = range(8)
@@ -126,20 +128,24 @@ class _Member:
         self.windows: list = []         # (output address, size, WindowSums) of its average transitions
         self.tape = np.empty((0, 0))    # its outputs in a stretch, one row per step
         self.tape_address = 0
+        self.capacity = 0               # the tape's rows: its most steps in one stretch
 
 
 class _Template:
     """The program of one stretch from one schedule state, ticks counted from the stretch's start.
 
-    ``ops`` is rewritten in place where a stretch's values go (``sources``, ``patches``, windows).
+    Each stretch writes its values where the program reads them: the sources' values into staging
+    rows, the samples read from histories that do not change in the stretch into ``ops`` in place
+    (``patches``), the windows' sums into a table.
     """
 
     def __init__(self):
         self.ops = array.array("q")
         self.steps: list[tuple] = []      # (rank, tick, row, index of its last op + 1, its window slots)
         self.sources: list[tuple] = []    # (source, its ticks, [(port, staging rows)]): continuous sources' values
-        self.patches: list[tuple] = []    # (op index, route, tau): values read from histories that stay
+        self.patches: list[tuple] = []    # (op index, route, tau, size): values read from histories that stay
         self.windows: list[tuple] = []    # (WindowSums, end tick, size) per window slot
+        self.constants: list[tuple] = []  # (op index, route) of the one set of a constant source's value
         self.counts: dict[int, int] = {}  # rank -> steps in the stretch
         self.first_tick: dict = {}        # route -> tau of its first patch (histories that stay)
         self.last_tick: dict = {}         # route -> tau of its last patch
@@ -159,18 +165,20 @@ class CompiledLoop:
         for comp in comps:
             if self._can_take_part(comp):
                 self.members[comp.rank] = self._member(comp)
-        # a connection between two members must be a hold (the value a consumer reads is a sample)
+        # a connection between two members must be a hold (the value a consumer reads is a sample),
+        # between ports of one size (the scene checks it; the program copies the consumer's size)
         changed = True
         while changed:
             changed = False
             for rank, member in list(self.members.items()):
-                if any(r.producer is not None and r.producer.rank in self.members
-                       and not isinstance(r.transition, tr.Hold) for r in member.routes):
+                if any(r.producer is not None and r.producer.rank in self.members and (
+                        not isinstance(r.transition, tr.Hold) or member.last_values[r].size !=
+                        self.members[r.producer.rank].instance.output_views[r.spec.source_port].size)
+                       for r in member.routes):
                     del self.members[rank]
                     changed = True
         self._port_array = (_Port * max(1, len(self._ports)))(*self._ports)
         self._plans: dict = {}
-        self._windows = (_Window * 0)()
         self.stretches = 0
         self.steps = 0
 
@@ -191,6 +199,8 @@ class CompiledLoop:
         instance = getattr(comp.host, "instance", None)
         if comp.asynchronous or not isinstance(instance, Fmi3Instance) or instance.freed or instance.fatal:
             return False
+        if "fmi3DoStep" not in instance.library.functions:
+            return False  # the Python path reports it
         if comp.pre_step:  # someone times each step (real-time pacing)
             return False
         for listener in comp.listeners:
@@ -273,7 +283,8 @@ class CompiledLoop:
         member.windows = [(_address(views[name]), views[name].size, history)
                           for name, histories in comp.histories.items() for history in histories
                           if not history.keeps_values]
-        member.tape = np.empty((_TAPE_ROWS, width))
+        member.capacity = min(MAX_STEPS, max(16, _TAPE_BYTES // (8 * max(1, width))))
+        member.tape = np.empty((member.capacity, width))
         member.tape_address = _address(member.tape)
         return member
 
@@ -295,12 +306,16 @@ class CompiledLoop:
                 return cached
         members = self.members
         steps: list[tuple[int, int]] = []
+        counts = dict.fromkeys(members, 0)
         lookahead = algorithm._lookahead
         while len(steps) < MAX_STEPS:
             decision = algorithm._decide_at(times, running, lookahead)
             if decision is None or not decision[0] or decision[1] not in members:
                 break
             rank = decision[1]
+            if counts[rank] == members[rank].capacity:
+                break
+            counts[rank] += 1
             steps.append((rank, times[rank] - t_min))
             times[rank] += comps[rank].step
         plan = [steps, max(times) - t_min, None]
@@ -318,8 +333,11 @@ class CompiledLoop:
         ops = template.ops
         rows: dict[int, int] = {}
         produced: dict[int, list[tuple[int, int]]] = {rank: [] for rank, _ in steps}  # (sample tick, row address)
-        staging: dict = {}   # route -> [(row, tau)]
-        windows: dict = {}   # (WindowSums, end tick) -> slot
+        counts: dict[int, int] = {}
+        for rank, _ in steps:
+            counts[rank] = counts.get(rank, 0) + 1
+        staging: dict = {}   # route -> (its staging rows, [(row, tau)])
+        windows: dict = {}   # (WindowSums, end tick, size) -> slot
         for rank, tick in steps:
             comp = comps[rank]
             member = members[rank]
@@ -327,9 +345,16 @@ class CompiledLoop:
             for route in member.routes:
                 tau = tick + route.need_offset
                 index = member.port_index[route]
+                if route.source is not None and route.source.constant:
+                    # the Python path sets a constant source's value once in a run: here its first time
+                    if route not in staging:
+                        staging[route] = (np.empty((1, member.last_values[route].size)), [(0, tau)])
+                        template.constants.append((len(ops) // 4, route))
+                        ops.extend((OP_SET, index, _address(staging[route][0]), NO_KEY))
+                    continue
                 if route.source is not None:  # its value at tau, written into a row of its staging array
                     if route not in staging:
-                        staging[route] = (np.empty((MAX_STEPS, member.last_values[route].size)), [])
+                        staging[route] = (np.empty((counts[rank], member.last_values[route].size)), [])
                     values, items = staging[route]
                     items.append((len(items), tau))
                     ops.extend((OP_SET, index, _address(values[len(items) - 1]), NO_KEY))
@@ -342,7 +367,7 @@ class CompiledLoop:
                         ops.extend((OP_SET, index, sample[1] + 8 * offset, sample[0]))
                         continue
                 # a sample from before the stretch (its producer's history does not change in it)
-                template.patches.append((len(ops) // 4, route, tau))
+                template.patches.append((len(ops) // 4, route, tau, member.last_values[route].size))
                 template.first_tick.setdefault(route, tau)
                 template.last_tick[route] = tau
                 ops.extend((OP_NOP, index, 0, 0))
@@ -401,9 +426,11 @@ class CompiledLoop:
                     return None  # compared as its own type by the Python path
                 rows[:len(ticks)] = value
         ops = template.ops
+        for op, route in template.constants:  # set once in a run, then never again
+            ops[4 * op] = OP_SET if route.last_value is None else OP_NOP
         keep = []
         stable = set()  # routes whose value is one sample all through the stretch: set once, at most
-        for op, route, tau in template.patches:
+        for op, route, tau, size in template.patches:
             k = 4 * op
             history = route.history
             if route in stable or not history.ticks:
@@ -415,8 +442,8 @@ class CompiledLoop:
                 value, key = route.transition.value(t0 + tau)
             except (LookupError, ValueError):
                 return None  # the Python path reports it
-            if value.dtype != _FLOAT64 or not value.flags.c_contiguous:
-                return None
+            if value.dtype != _FLOAT64 or not value.flags.c_contiguous or value.size != size:
+                return None  # the Python path converts it, or says what is wrong
             keep.append(value)
             ops[k], ops[k + 2], ops[k + 3] = OP_SET, _address(value), NO_KEY if key is None else key - t0
             if key is not None and tau == template.first_tick[route] and not _sample_between(
