@@ -9,14 +9,18 @@ that quietly stepped nothing would pass the comparison).
 from __future__ import annotations
 
 import json
+import math
+from fractions import Fraction
 from pathlib import Path
 
 import pytest
+from hypothesis import assume, event, given, note, settings
+from hypothesis import strategies as st
 
 from conformance_fmus import build_all
 from orchestration.master import Simulation
 from orchestration.recording import read_stream
-from orchestration.scene import load_scene, scene_from_dict
+from orchestration.scene import SceneError, load_scene, scene_from_dict
 
 STATISTICS = ("peaks", "energy", "operator_warnings")
 
@@ -189,3 +193,55 @@ def test_a_64_bit_output_beyond_float64_is_refused_as_the_python_path_refuses_it
     assert compiled.algorithm.compiled_loop.steps >= 8  # the five steps of each before, in stretches
     t, a = read_stream(tmp_path / "compiled" / "a.csv")
     assert a["big"].tolist()[-1] == 2 ** 53 and t[-1] == 0.05
+
+
+# -- random multirate scenes of third-party FMUs -----------------------------------------------------
+STEPS_MS = (1, 2, 3, 4, 5, 6, 10)
+
+
+@st.composite
+def ramp_chains(draw):
+    """Two to four Ramp FMUs at random rates, each one's y or integral into the next one's u through a
+    random transition and ordering, perhaps a jacobi loop back to the first, and perhaps one in a
+    worker; scenes the checks refuse are rejected."""
+    n = draw(st.integers(2, 4))
+    steps = [draw(st.sampled_from(STEPS_MS)) for _ in range(n)]
+    worker = draw(st.one_of(st.none(), st.integers(0, n - 1))) if draw(st.booleans()) and draw(st.booleans()) else None
+    connections = []
+    for i in range(1, n):
+        connections.append({"from": f"r{i - 1}.{draw(st.sampled_from(['y', 'integral']))}", "to": f"r{i}.u",
+                            # hold (between two members) most often: the compiled loop's own routing
+                            "transition": draw(st.sampled_from(["hold", "hold", "hold", "interpolate", "extrapolate",
+                                                                "average"])),
+                            "ordering": draw(st.sampled_from(["jacobi", "gauss-seidel"]))})
+    if draw(st.booleans()):
+        connections.append({"from": f"r{n - 1}.y", "to": "r0.u", "transition": "hold", "ordering": "jacobi"})
+    lcm = math.lcm(*steps)
+    duration = Fraction(lcm * draw(st.integers(1, max(1, 120 // lcm))), 1000)
+    return steps, connections, worker, duration
+
+
+@settings(deadline=None)
+@given(case=ramp_chains())
+def test_random_multirate_scenes_run_compiled_as_in_python(conformance_fmus, tmp_path_factory, case):
+    steps, connections, worker, duration = case
+    note(repr(case))
+    fmus = {f"r{i}": {"path": str(conformance_fmus["Ramp"]), "step": Fraction(ms, 1000).limit_denominator()}
+            for i, ms in enumerate(steps)}
+    for i, table in enumerate(fmus.values()):
+        table["step"] = str(table["step"])
+        if i == worker:
+            table["hosting"] = "out-of-process"
+    data = {"scene": {"name": "ramps", "duration": str(duration), "hosting": "in-process"}, "fmu": fmus,
+            "connection": connections,
+            "record": {name: ["y", "integral", "calls"] for name in fmus},
+            "summary": {"peaks": [f"{name}.integral" for name in fmus]}}
+    tmp = tmp_path_factory.mktemp("ramps")
+    try:
+        scene = scene_from_dict(data, tmp)
+    except SceneError:
+        assume(False)  # a transition these rates cannot take, an algebraic loop
+    (compiled, summary), _ = _same_run(scene, tmp)
+    assert summary["status"] == "completed", summary["error"]
+    loop = compiled.algorithm.compiled_loop
+    event(f"compiled steps: {'none' if loop is None or not loop.steps else 'some'}")
