@@ -44,8 +44,11 @@ logger = logging.getLogger(__name__)
 
 #: Most steps in one stretch (the program's size; a stretch ends earlier at any event of its own)
 MAX_STEPS = 1024
-#: Stretches planned from the same schedule state are remembered (up to this many states)
+#: Stretches planned from the same schedule state are remembered (up to this many states) ...
 PLAN_CACHE_LIMIT = 10_000
+#: ... and their programs up to this many operations in all (32 bytes each): a rate mix with many
+#: schedule states has its later programs made afresh for each stretch instead of kept
+PROGRAM_CACHE_OPS = 1 << 20
 #: Tape ranges closer than this many values are copied as one
 _GAP = 16
 #: Bytes of one component's tape (its outputs in a stretch, a row per step): a stretch holds at most
@@ -179,6 +182,7 @@ class CompiledLoop:
                     changed = True
         self._port_array = (_Port * max(1, len(self._ports)))(*self._ports)
         self._plans: dict = {}
+        self._cached_ops = 0
         self.stretches = 0
         self.steps = 0
 
@@ -290,9 +294,10 @@ class CompiledLoop:
 
     # -- planning ------------------------------------------------------------------------------------
     def _plan(self) -> list:
-        """``[steps, span, template]``: the steps ``(rank, tick)`` the scheduler makes next while they
-        are members' steps, ticks counted from the slowest component's; how far they reach; their
-        program once made. Remembered per schedule state, except near the end of the run."""
+        """``[steps, span, template, remembered]``: the steps ``(rank, tick)`` the scheduler makes next
+        while they are members' steps, ticks counted from the slowest component's; how far they
+        reach; their program once made and kept; whether the plan is remembered for its schedule
+        state (not near the end of the run)."""
         algorithm = self.algorithm
         comps = algorithm.ordered
         times = [c.time for c in comps]
@@ -318,8 +323,9 @@ class CompiledLoop:
             counts[rank] += 1
             steps.append((rank, times[rank] - t_min))
             times[rank] += comps[rank].step
-        plan = [steps, max(times) - t_min, None]
-        if key is not None and len(self._plans) < PLAN_CACHE_LIMIT:
+        remembered = key is not None and len(self._plans) < PLAN_CACHE_LIMIT
+        plan = [steps, max(times) - t_min, None, remembered]
+        if remembered:
             self._plans[key] = plan
         return plan
 
@@ -402,12 +408,16 @@ class CompiledLoop:
         """Make the steps of the stretch that starts at the scheduler's next decision; returns how
         many were made (0: the stretch is too short, the caller steps as before)."""
         plan = self._plan()
-        steps, _, template = plan
+        steps, _, template, remembered = plan
         if len(steps) < 2:
             return 0
         t0 = min(c.time for c in self.algorithm.ordered)
         if template is None:
-            template = plan[2] = self._template(steps, t0)
+            template = self._template(steps, t0)
+            size = len(template.ops) // 4
+            if remembered and self._cached_ops + size <= PROGRAM_CACHE_OPS:
+                plan[2] = template
+                self._cached_ops += size
         fill = self._fill(template, t0)
         if fill is None:
             return 0

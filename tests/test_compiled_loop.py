@@ -245,3 +245,16 @@ def test_random_multirate_scenes_run_compiled_as_in_python(conformance_fmus, tmp
     assert summary["status"] == "completed", summary["error"]
     loop = compiled.algorithm.compiled_loop
     event(f"compiled steps: {'none' if loop is None or not loop.steps else 'some'}")
+
+
+def test_programs_made_afresh_for_each_stretch_give_the_same_run(built, tmp_path, monkeypatch):
+    """Past its budget of kept programs (a rate mix with many schedule states) each stretch gets a
+    new program: the same run."""
+    from orchestration import compiled_loop
+
+    monkeypatch.setattr(compiled_loop, "PROGRAM_CACHE_OPS", 0)
+    scene = load_scene("aaa_endovascular", {"duration": 0.5})
+    (compiled, summary), _ = _same_run(scene, tmp_path)
+    loop = compiled.algorithm.compiled_loop
+    assert loop._cached_ops == 0 and loop.steps >= 0.95 * (summary["components"]["catheter"]["steps"]
+                                                             + summary["components"]["contact"]["steps"])
