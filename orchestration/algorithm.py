@@ -79,6 +79,11 @@ class Observer(Protocol):
     component's steps (``subscribes(component)`` decides otherwise): ``before_step(component,
     tick)`` and ``stepped(component, tick, outputs)``, the outputs valid only during the call.
     ``initializing``, ``initialized``, ``started`` and ``finished`` take the algorithm.
+
+    After a compiled stretch (:mod:`.compiled_loop`) the steps are reported component by
+    component, each one's in time order: ``stepped_block(component, ticks, outputs, first_step)``
+    with a row per step in ``outputs[port]`` where an observer has it, else ``stepped`` per step.
+    An observer that times or paces steps (``before_step``) keeps the run out of the compiled loop.
     """
 
     def ports(self, component: str) -> list[str]: ...
