@@ -84,33 +84,41 @@ def _digest(paths) -> str:
     return sha.hexdigest()
 
 
-def layer_library(build_dir: Path = BUILD_DIR) -> Path:
-    """Compile (once per source version) the FMI layer's shared library; return its path."""
-    sources = [LAYER / name for name in LAYER_SOURCES] + sorted((LAYER / "include").glob("*.h"))
-    work = Path(build_dir) / f"fmi3_layer-{_digest(sources)[:16]}"
-    library = work / "fmi3_layer.so"
+def find_compiler() -> str | None:
+    """The C compiler the build uses: $CC, else cc, gcc or clang on the PATH."""
+    return os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+
+
+def _shared_library(name: str, what: str, sources: list[Path], arguments, build_dir: Path) -> Path:
+    """``build_dir/<name>-<digest of sources>/<name>.so``, compiled once per version of the sources
+    with the compiler's ``arguments(output)``; ``what`` names it in errors."""
+    work = Path(build_dir) / f"{name}-{_digest(sources)[:16]}"
+    library = work / f"{name}.so"
     if library.exists():
         return library
     compiler = find_compiler()
     if compiler is None:
-        raise BuildError("no C compiler found (cc, gcc or clang): building the FMUs compiles the project's FMI "
-                         "layer. Install one (Debian: `apt-get install -y gcc`) or set CC, and build again.")
+        raise BuildError(f"no C compiler found (cc, gcc or clang) to compile {what}. Install one (Debian: "
+                         "`apt-get install -y gcc`) or set CC, and build again.")
     work.mkdir(parents=True, exist_ok=True)
-    partial = work / "fmi3_layer.so.partial"
-    command = [compiler, "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fPIC", "-shared",
-               "-fvisibility=hidden", f"-I{LAYER / 'include'}", str(LAYER / "fmi3Functions.c"),
-               str(LAYER / "python_embed.c"), "-o", str(partial), "-ldl", "-lpthread", "-lm"]
+    partial = work / f"{name}.so.{os.getpid()}.partial"  # two processes may compile at once
+    command = [compiler, *arguments(partial)]
     proc = subprocess.run(command, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise BuildError(f"compiling the FMI layer failed (exit {proc.returncode}):\n{' '.join(command)}\n"
+        partial.unlink(missing_ok=True)
+        raise BuildError(f"compiling {what} failed (exit {proc.returncode}):\n{' '.join(command)}\n"
                          f"{proc.stderr[-3000:]}")
     partial.replace(library)
     return library
 
 
-def find_compiler() -> str | None:
-    """The C compiler the build uses: $CC, else cc, gcc or clang on the PATH."""
-    return os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+def layer_library(build_dir: Path = BUILD_DIR) -> Path:
+    """Compile (once per source version) the FMI layer's shared library; return its path."""
+    sources = [LAYER / name for name in LAYER_SOURCES] + sorted((LAYER / "include").glob("*.h"))
+    return _shared_library("fmi3_layer", "the FMUs' FMI layer", sources, lambda output: [
+        "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fPIC", "-shared",
+        "-fvisibility=hidden", f"-I{LAYER / 'include'}", str(LAYER / "fmi3Functions.c"), str(LAYER / "python_embed.c"),
+        "-o", str(output), "-ldl", "-lpthread", "-lm"], build_dir)
 
 
 COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"
@@ -118,25 +126,9 @@ COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"
 
 def compiled_loop_library(build_dir: Path = BUILD_DIR) -> Path:
     """Compile (once per source version) the master's compiled loop (orchestration/compiled_loop.c)."""
-    work = Path(build_dir) / f"compiled_loop-{_digest([COMPILED_LOOP_SOURCE])[:16]}"
-    library = work / "compiled_loop.so"
-    if library.exists():
-        return library
-    compiler = find_compiler()
-    if compiler is None:
-        raise BuildError("no C compiler found (cc, gcc or clang) for the master's compiled loop; install one "
-                         "(Debian: `apt-get install -y gcc`) or set CC")
-    work.mkdir(parents=True, exist_ok=True)
-    partial = work / f"compiled_loop.so.{os.getpid()}.partial"  # two processes may compile at once
-    command = [compiler, "-std=gnu11", "-O2", "-g", "-Wall", "-Wextra", "-fPIC", "-shared", str(COMPILED_LOOP_SOURCE),
-               "-o", str(partial)]
-    proc = subprocess.run(command, capture_output=True, text=True)
-    if proc.returncode != 0:
-        partial.unlink(missing_ok=True)
-        raise BuildError(f"compiling the master's compiled loop failed (exit {proc.returncode}):\n{' '.join(command)}\n"
-                         f"{proc.stderr[-3000:]}")
-    partial.replace(library)
-    return library
+    return _shared_library("compiled_loop", "the master's compiled loop", [COMPILED_LOOP_SOURCE], lambda output: [
+        "-std=gnu11", "-O2", "-g", "-Wall", "-Wextra", "-fPIC", "-shared", str(COMPILED_LOOP_SOURCE),
+        "-o", str(output)], build_dir)
 
 
 def python_environment() -> dict:
