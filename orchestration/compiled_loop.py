@@ -551,8 +551,7 @@ class CompiledLoop:
             for name, histories in comp.histories.items():
                 for history in histories:
                     if history.keeps_values:
-                        for tick, sample in zip(ticks, kept[name]):
-                            history.append(tick, sample)
+                        history.extend(ticks, kept[name])
                     else:
                         for tick, (_, _, slots) in zip(ticks, steps):
                             slot = slots[window_index]

@@ -51,6 +51,14 @@ class SampleHistory:
         self.values.append(value)
         self.count += 1
 
+    def extend(self, ticks: list[int], values) -> None:
+        """``append`` each of ``ticks`` (increasing) with its value, at once."""
+        if ticks:
+            _check_order(self.ticks, ticks[0])
+            self.ticks.extend(ticks)
+            self.values.extend(values)
+            self.count += len(ticks)
+
     def prune(self, keep_from: int) -> None:
         """Drop samples older than ``keep_from``, always keeping the latest two."""
         while len(self.ticks) > 2 and self.ticks[1] <= keep_from and self.ticks[0] < keep_from:

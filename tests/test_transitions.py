@@ -151,3 +151,20 @@ def test_tick_base_is_the_lcm_of_the_step_denominators(tmp_path):
     base = tick_base(scene)
     assert base == 3000
     assert scene.components["d"].step * base == 100 and scene.components["e"].step * base == 3
+
+
+def test_extend_is_append_one_at_a_time():
+    """The compiled loop hands a stretch's samples over at once: the same history as appending each."""
+    from orchestration.transitions import SampleHistory
+
+    one, many = SampleHistory(3), SampleHistory(3)
+    one.append(3, np.array([1.0]))
+    many.append(3, np.array([1.0]))
+    samples = np.arange(8.0).reshape(4, 2)
+    for tick, value in zip([6, 9, 12, 15], samples):
+        one.append(tick, value)
+    many.extend([6, 9, 12, 15], samples)
+    assert list(one.ticks) == list(many.ticks) and one.count == many.count == 5
+    assert all(a.tobytes() == b.tobytes() for a, b in zip(one.values, many.values))
+    with pytest.raises(ValueError, match="time order"):
+        many.extend([15, 18], samples[:2])
