@@ -50,6 +50,7 @@ typedef struct {
     int64_t last_valid;
     int64_t last_key;  /* inputs: the tick of the sample last taken through a keyed transition (hold) */
     int64_t has_key;
+    int64_t sets;      /* inputs: the sets made through this port in this program */
 } Port;
 
 /* The running sum of one window of an "average" transition. */
@@ -167,6 +168,7 @@ Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, 
                 if (p->last_valid && memcmp(values, p->last, bytes) == 0) break;
                 memcpy(p->last, values, bytes);
                 p->last_valid = 1;
+                p->sets++;
                 memcpy(p->slot, values, bytes);
                 if (p->cast != CAST_NONE && from_float64(p) != 0) { result.reason = NOT_EXACT; return result; }
                 Component *c = components + p->component;

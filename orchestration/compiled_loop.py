@@ -75,7 +75,8 @@ class _Component(ctypes.Structure):
 class _Port(ctypes.Structure):
     _fields_ = [("component", c_int64), ("function", c_void_p), ("vrs", c_void_p), ("n_vrs", c_int64),
                 ("slot", c_void_p), ("native", c_void_p), ("size", c_int64), ("cast", c_int64),
-                ("last", c_void_p), ("last_valid", c_int64), ("last_key", c_int64), ("has_key", c_int64)]
+                ("last", c_void_p), ("last_valid", c_int64), ("last_key", c_int64), ("has_key", c_int64),
+                ("sets", c_int64)]
 
 
 class _Window(ctypes.Structure):
@@ -123,6 +124,7 @@ class _Member:
         self.routes: list = []          # its input connections (not parameters), in the scene's order
         self.port_index: dict = {}      # route -> its input port's record index
         self.last_values: dict = {}     # route -> the float64 buffer of the last value set
+        self.written: dict = {}         # route -> the last value the loop handed back (its buffer holds it)
         self.step_ops: tuple = ()       # the ops after its fmi3DoStep: read the outputs, stop the clock
         self.tape_ports: list[tuple[str, int, int]] = []     # (port, offset in a tape row, size)
         self.tape_offsets: dict[str, int] = {}
@@ -243,14 +245,14 @@ class CompiledLoop:
             member.last_values[route] = last
             self._ports.append(_Port(comp.rank, _address(port.setter), ctypes.addressof(port.vr), 1,
                                      _address(port.slot), _address(port.native), port.size,
-                                     _CASTS[port.native.dtype], _address(last), 0, 0, 0))
+                                     _CASTS[port.native.dtype], _address(last), 0, 0, 0, 0))
             self._port_objects.append(port)
         step_ops = []
         for group in instance.output_groups:
             step_ops += (OP_GET, len(self._ports), 0, 0)
             self._ports.append(_Port(comp.rank, _address(group.getter), ctypes.addressof(group.vrs), group.count,
                                      _address(group.slot), _address(group.native), group.size,
-                                     _CASTS[group.native.dtype], None, 0, 0, 0))
+                                     _CASTS[group.native.dtype], None, 0, 0, 0, 0))
             self._port_objects.append(group)
         member.step_ops = tuple(step_ops) + (OP_END, comp.rank, 0, 0)
         # The tape: the observed output buffer's ranges that hold what histories keep and observers read.
@@ -485,7 +487,8 @@ class CompiledLoop:
                 port = ports[member.port_index[route]]
                 value = route.last_value
                 port.last_valid = value is not None
-                if value is not None:
+                port.sets = 0
+                if value is not None and value is not member.written.get(route):  # set from Python since
                     last[:] = value.reshape(-1)
                 port.has_key = route.last_key is not None
                 port.last_key = route.last_key if route.last_key is not None else 0
@@ -505,8 +508,8 @@ class CompiledLoop:
             comp.busy += records[comp.rank].busy_ns * 1e-9
             for route, last in member.last_values.items():
                 port = ports[member.port_index[route]]
-                if port.last_valid and (route.last_value is None or route.last_value.tobytes() != last.tobytes()):
-                    route.last_value = last.copy()
+                if port.sets:
+                    route.last_value = member.written[route] = last.copy()
                     route.last_bytes = route.last_value.tobytes()
                 if port.has_key:
                     route.last_key = port.last_key

@@ -93,16 +93,14 @@ class WindowSums:
         self._sums: dict[int, list] = {}  # window end tick -> [sum array, number of samples]
 
     def append(self, tick: int, value: np.ndarray) -> None:
-        _check_order(self.ticks, tick)
-        end = -(-tick // self.window) * self.window
+        end = self._window_end(tick)
         entry = self._sums.get(end)
         if entry is None:
             self._sums[end] = [np.array(value, dtype=np.float64, copy=True), 1]
         else:
             np.add(entry[0], value, out=entry[0])
             entry[1] += 1
-        self.ticks.append(int(tick))
-        self.count += 1
+        self._counted(tick)
 
     def window_sum(self, end: int) -> np.ndarray | None:
         """The running sum of the window ending at tick ``end`` (None before its first sample)."""
@@ -112,12 +110,19 @@ class WindowSums:
     def append_summed(self, tick: int, opened: np.ndarray | None) -> None:
         """Count a sample that was already added into its window's sum (by the compiled loop);
         ``opened`` is the window's new sum when the sample is its first."""
-        _check_order(self.ticks, tick)
-        end = -(-tick // self.window) * self.window
+        end = self._window_end(tick)
         if opened is not None:
             self._sums[end] = [opened, 1]
         else:
             self._sums[end][1] += 1
+        self._counted(tick)
+
+    def _window_end(self, tick: int) -> int:
+        """The end of the window a sample at ``tick`` belongs to (samples arrive in time order)."""
+        _check_order(self.ticks, tick)
+        return -(-tick // self.window) * self.window
+
+    def _counted(self, tick: int) -> None:
         self.ticks.append(int(tick))
         self.count += 1
 
