@@ -131,6 +131,7 @@ class _Member:
         self.listener_ports: list[tuple[str, int, int]] = []
         self.copies: list[tuple[int, int, int]] = []        # (offset in a tape row, output address, size)
         self.windows: list = []         # (output address, size, WindowSums) of its average transitions
+        self.consumer_of: dict = {}     # id of one of its histories -> the component that reads it
         self.tape = np.empty((0, 0))    # its outputs in a stretch, one row per step
         self.tape_address = 0
         self.capacity = 0               # the tape's rows: its most steps in one stretch
@@ -148,12 +149,16 @@ class _Template:
         self.ops = array.array("q")
         self.steps: list[tuple] = []      # (rank, tick, row, index of its last op + 1, its window slots)
         self.sources: list[tuple] = []    # (source, its ticks, [(port, staging rows)]): continuous sources' values
-        self.patches: list[tuple] = []    # (op index, route, tau, size): values read from histories that stay
+        #: values read from histories that stay, per route: (route, its ops' indices (an array and a
+        #: list), their taus, the value's size)
+        self.patches: list[tuple] = []
         self.windows: list[tuple] = []    # (WindowSums, end tick, size) per window slot
         self.constants: list[tuple] = []  # (op index, route) of the one set of a constant source's value
         self.counts: dict[int, int] = {}  # rank -> steps in the stretch
-        self.first_tick: dict = {}        # route -> tau of its first patch (histories that stay)
-        self.last_tick: dict = {}         # route -> tau of its last patch
+        #: rank -> its steps' end ticks, its first and last tape rows, for each of its windows the slots
+        #: its steps added to: what the replay of a whole stretch needs
+        self.replay: dict[int, tuple] = {}
+        self.codes = np.empty(0, dtype=np.int64)  # the ops' codes: a view of ``ops``
 
 
 class CompiledLoop:
@@ -286,6 +291,7 @@ class CompiledLoop:
             member.tape_ports.append(item)
             if name in listened:
                 member.listener_ports.append(item)
+        member.consumer_of = {id(route.history): consumer for consumer, route in comp.consumers}
         member.windows = [(_address(views[name]), views[name].size, history)
                           for name, histories in comp.histories.items() for history in histories
                           if not history.keeps_values]
@@ -345,6 +351,7 @@ class CompiledLoop:
         for rank, _ in steps:
             counts[rank] = counts.get(rank, 0) + 1
         staging: dict = {}   # route -> (its staging rows, [(row, tau)])
+        patches: dict = {}   # route -> ([op index], [tau], size) of the values read from histories that stay
         windows: dict = {}   # (WindowSums, end tick, size) -> slot
         for rank, tick in steps:
             comp = comps[rank]
@@ -375,9 +382,9 @@ class CompiledLoop:
                         ops.extend((OP_SET, index, sample[1] + 8 * offset, sample[0]))
                         continue
                 # a sample from before the stretch (its producer's history does not change in it)
-                template.patches.append((len(ops) // 4, route, tau, member.last_values[route].size))
-                template.first_tick.setdefault(route, tau)
-                template.last_tick[route] = tau
+                patch = patches.setdefault(route, ([], [], member.last_values[route].size))
+                patch[0].append(len(ops) // 4)
+                patch[1].append(tau)
                 ops.extend((OP_NOP, index, 0, 0))
             ops.extend((OP_STEP, rank, tick, 0))
             ops.extend(member.step_ops)
@@ -396,6 +403,10 @@ class CompiledLoop:
                 slots.append(slot)
             template.steps.append((rank, tick, row, len(ops) // 4, slots))
         template.counts = rows
+        template.patches = [(route, np.array(indices, dtype=np.int64), indices, taus, size)
+                            for route, (indices, taus, size) in patches.items()]
+        template.codes = np.frombuffer(ops, dtype=np.int64)[::4]  # (ops keeps its size from here on)
+        template.replay = self._replay_data(template.steps)
         groups: dict = {}  # the routes of one source read at the same ticks: evaluated once
         for route, (values, items) in staging.items():
             ticks = tuple(tau for _, tau in items)
@@ -441,26 +452,28 @@ class CompiledLoop:
         for op, route in template.constants:  # set once in a run, then never again
             ops[4 * op] = OP_SET if route.last_value is None else OP_NOP
         keep = []
-        stable = set()  # routes whose value is one sample all through the stretch: set once, at most
-        for op, route, tau, size in template.patches:
-            k = 4 * op
+        codes = template.codes
+        for route, indices, index_list, taus, size in template.patches:
             history = route.history
-            if route in stable or not history.ticks:
-                ops[k] = OP_NOP  # the Python path finds the same key, or no sample, and sets nothing
+            if not history.ticks:
+                codes[indices] = OP_NOP  # the Python path finds no sample and sets nothing
                 continue
             if route.last_value is not None and route.last_value.dtype != _FLOAT64:
                 return None  # compared as its own type by the Python path
-            try:
-                value, key = route.transition.value(t0 + tau)
-            except (LookupError, ValueError):
-                return None  # the Python path reports it
-            if value.dtype != _FLOAT64 or not value.flags.c_contiguous or value.size != size:
-                return None  # the Python path converts it, or says what is wrong
-            keep.append(value)
-            ops[k], ops[k + 2], ops[k + 3] = OP_SET, _address(value), NO_KEY if key is None else key - t0
-            if key is not None and tau == template.first_tick[route] and not _sample_between(
-                    history, t0 + tau, t0 + template.last_tick[route]):
-                stable.add(route)
+            for i, tau in enumerate(taus):
+                try:
+                    value, key = route.transition.value(t0 + tau)
+                except (LookupError, ValueError):
+                    return None  # the Python path reports it
+                if value.dtype != _FLOAT64 or not value.flags.c_contiguous or value.size != size:
+                    return None  # the Python path converts it, or says what is wrong
+                keep.append(value)
+                k = 4 * index_list[i]
+                ops[k], ops[k + 2], ops[k + 3] = OP_SET, _address(value), NO_KEY if key is None else key - t0
+                if i == 0 and key is not None and not _sample_between(history, t0 + tau, t0 + taus[-1]):
+                    # one sample all through the stretch: set once, at most (the Python path finds the same key)
+                    codes[indices[1:]] = OP_NOP
+                    break
         windows = (_Window * max(1, len(template.windows)))()
         opened = {}
         for slot, (history, end, size) in enumerate(template.windows):
@@ -526,39 +539,53 @@ class CompiledLoop:
         self._stopped(rank, t0 + tick, tuple(ops[k:k + 4]), result, marks[rank], clock)
         return made + 1
 
+    def _replay_data(self, steps: list[tuple]) -> dict[int, tuple]:
+        """Per rank of ``steps`` (a template's, or the first of them): its steps' end ticks from the
+        stretch's start, its first and last tape rows, for each of its windows the slots it added to."""
+        comps = self.algorithm.ordered
+        data = {}
+        for rank in dict.fromkeys(step[0] for step in steps):
+            own = [step for step in steps if step[0] == rank]
+            comp_step = comps[rank].step
+            slots = [sorted({step[4][w] for step in own}) for w in range(len(self.members[rank].windows))]
+            data[rank] = ([step[1] + comp_step for step in own], own[0][2], own[-1][2], slots)
+        return data
+
     def _replay(self, template: _Template, t0: int, made: int, opened: dict) -> None:
         """What the Python path does after each of the first ``made`` steps (``_finish``, ``_store``),
         from the tapes: step counts, histories, observers."""
         comps = self.algorithm.ordered
-        by_rank: dict[int, list] = {}
-        for rank, tick, row, _, slots in template.steps[:made]:
-            by_rank.setdefault(rank, []).append((t0 + tick, row, slots))
-        for rank, steps in by_rank.items():
+        base = self.algorithm.base
+        data = template.replay if made == len(template.steps) else self._replay_data(template.steps[:made])
+        blocks = []
+        for rank, (ends, first_row, last_row, window_slots) in data.items():  # where each is now
             member = self.members[rank]
             comp = member.comp
-            first_step = comp.steps
-            ticks = [tick + comp.step for tick, _, _ in steps]
-            rows = member.tape[steps[0][1]:steps[-1][1] + 1]
-            comp.time = ticks[-1]
-            comp.steps += len(steps)
-            member.instance.time = comp.time / self.algorithm.base
+            blocks.append((member, comp.steps, [t0 + end for end in ends], member.tape[first_row:last_row + 1],
+                           window_slots))
+            comp.time = t0 + ends[-1]
+            comp.steps += len(ends)
+            member.instance.time = comp.time / base
             comp.host.terminate_requested = comp.host.early_return = False
             comp.host.last_successful_time = member.instance.time
             comp.outputs = member.instance.output_views
-            kept = {}
-            for name, histories in comp.histories.items():
-                if any(h.keeps_values for h in histories):
-                    offset = member.tape_offsets[name]
-                    kept[name] = rows[:, offset:offset + comp.outputs[name].size].copy()  # one copy for all samples
+        for member, first_step, ticks, rows, window_slots in blocks:  # what each made
+            comp = member.comp
             window_index = 0
             for name, histories in comp.histories.items():
+                kept = None  # one copy of the samples for the histories that keep them
                 for history in histories:
                     if history.keeps_values:
-                        history.extend(ticks, kept[name])
+                        if kept is None:
+                            offset = member.tape_offsets[name]
+                            kept = rows[:, offset:offset + comp.outputs[name].size].copy()
+                        # pruned as it goes: the samples its consumer can no longer ask for are not kept
+                        consumer = member.consumer_of[id(history)]
+                        history.extend(ticks, kept, consumer.time - 2 * comp.step - consumer.step)
                     else:
-                        for tick, (_, _, slots) in zip(ticks, steps):
-                            slot = slots[window_index]
-                            history.append_summed(tick, opened.pop(slot, None))
+                        sums = {t0 + template.windows[slot][1]: opened[slot]
+                                for slot in window_slots[window_index] if slot in opened}
+                        history.extend_summed(ticks, sums)
                         window_index += 1
             if comp.listeners:
                 columns = {name: rows[:, offset:offset + size] for name, offset, size in member.listener_ports}
@@ -572,7 +599,7 @@ class CompiledLoop:
                         comp.steps = first_step + i + 1
                         listener(comp, tick, {name: values[i] for name, values in columns.items()})
                     comp.steps = steps_after
-        for rank in by_rank:
+        for rank in data:
             comp = comps[rank]
             for consumer, route in comp.consumers:
                 route.history.prune(consumer.time - 2 * comp.step - consumer.step)

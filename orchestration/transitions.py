@@ -22,6 +22,7 @@ Before a producer has two samples, interpolate and extrapolate hold the first on
 """
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections import deque
 
 import numpy as np
@@ -51,19 +52,44 @@ class SampleHistory:
         self.values.append(value)
         self.count += 1
 
-    def extend(self, ticks: list[int], values) -> None:
-        """``append`` each of ``ticks`` (increasing) with its value, at once."""
-        if ticks:
-            _check_order(self.ticks, ticks[0])
-            self.ticks.extend(ticks)
-            self.values.extend(values)
-            self.count += len(ticks)
+    def extend(self, ticks: list[int], values, keep_from: int | None = None) -> None:
+        """``append`` each of ``ticks`` (increasing) with its value, at once; then ``prune(keep_from)``
+        when given, without keeping the samples that it would drop."""
+        if not ticks:
+            return
+        _check_order(self.ticks, ticks[0])
+        self.count += len(ticks)
+        new = 0  # the first of the new samples kept
+        if keep_from is not None:
+            held = len(self.ticks)
+            drop = self._dropped(held + len(ticks),
+                                 bisect_right(self.ticks, keep_from) + bisect_right(ticks, keep_from))
+            if drop >= held:
+                self.ticks.clear()
+                self.values.clear()
+                new = drop - held
+            else:
+                self._drop(drop)
+        self.ticks.extend(ticks[new:])
+        self.values.extend(values[new:])
 
     def prune(self, keep_from: int) -> None:
         """Drop samples older than ``keep_from``, always keeping the latest two."""
-        while len(self.ticks) > 2 and self.ticks[1] <= keep_from and self.ticks[0] < keep_from:
-            self.ticks.popleft()
-            self.values.popleft()
+        ticks = self.ticks
+        if len(ticks) > 2 and ticks[1] <= keep_from:
+            self._drop(self._dropped(len(ticks), bisect_right(ticks, keep_from)))
+
+    @staticmethod
+    def _dropped(count: int, at_or_before: int) -> int:
+        """How many of ``count`` samples a prune drops when ``at_or_before`` of them have a tick at or
+        before ``keep_from``: those before the latest such sample (ticks increase), the latest two kept."""
+        return max(0, min(count - 2, at_or_before - 1))
+
+    def _drop(self, count: int) -> None:
+        pop_tick, pop_value = self.ticks.popleft, self.values.popleft
+        for _ in range(count):
+            pop_tick()
+            pop_value()
 
     def latest_index(self, tau: int) -> int:
         """Index of the latest sample with tick <= tau (-1 if none)."""
@@ -107,15 +133,26 @@ class WindowSums:
         entry = self._sums.get(end)
         return None if entry is None else entry[0]
 
-    def append_summed(self, tick: int, opened: np.ndarray | None) -> None:
-        """Count a sample that was already added into its window's sum (by the compiled loop);
-        ``opened`` is the window's new sum when the sample is its first."""
-        end = self._window_end(tick)
-        if opened is not None:
-            self._sums[end] = [opened, 1]
-        else:
-            self._sums[end][1] += 1
-        self._counted(tick)
+    def extend_summed(self, ticks: list[int], opened: dict[int, np.ndarray]) -> None:
+        """Count the samples at ``ticks`` (increasing) that were already added into their windows'
+        sums (by the compiled loop); ``opened`` maps the end of each window that one of them opened
+        (its first sample) to the window's new sum."""
+        if not ticks:
+            return
+        _check_order(self.ticks, ticks[0])
+        window, sums = self.window, self._sums
+        i, n = 0, len(ticks)
+        while i < n:  # a window at a time: its samples are those up to its end
+            end = -(-ticks[i] // window) * window
+            j = bisect_right(ticks, end, i)
+            new = opened.get(end)
+            if new is not None:
+                sums[end] = [new, j - i]
+            else:
+                sums[end][1] += j - i
+            i = j
+        self.ticks.extend(ticks[-2:])
+        self.count += n
 
     def _window_end(self, tick: int) -> int:
         """The end of the window a sample at ``tick`` belongs to (samples arrive in time order)."""

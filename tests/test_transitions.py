@@ -168,3 +168,72 @@ def test_extend_is_append_one_at_a_time():
     assert all(a.tobytes() == b.tobytes() for a, b in zip(one.values, many.values))
     with pytest.raises(ValueError, match="time order"):
         many.extend([15, 18], samples[:2])
+
+
+def naive_prune(ticks: list[int], keep_from: int) -> list[int]:
+    """The definition: drop the oldest sample while it and the next are both older than the
+    consumers can ask for, keeping the latest two."""
+    ticks = list(ticks)
+    while len(ticks) > 2 and ticks[1] <= keep_from and ticks[0] < keep_from:
+        ticks.pop(0)
+    return ticks
+
+
+def test_prune_drops_what_the_definition_drops():
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        ticks = np.cumsum(rng.integers(1, 5, size=rng.integers(0, 12))).tolist()
+        h = tr.SampleHistory(1)
+        h.extend(ticks, [np.array([float(t)]) for t in ticks])
+        keep_from = int(rng.integers(-2, (ticks[-1] if ticks else 0) + 3))
+        h.prune(keep_from)
+        assert list(h.ticks) == naive_prune(ticks, keep_from)
+        assert [v[0] for v in h.values] == [float(t) for t in h.ticks]
+
+
+def test_summed_samples_counted_at_once_are_the_samples_appended_one_at_a_time():
+    """The compiled loop adds a stretch's samples into the window sums itself and counts them in one
+    call: the same sums, counts and means as appending each sample, whether a window opened before
+    the stretch or inside it."""
+    rng = np.random.default_rng(11)
+    one, many = tr.WindowSums(3, 100), tr.WindowSums(3, 100)
+    tick = 0
+    for stretch in range(40):
+        ticks = [tick + 3 * (i + 1) for i in range(int(rng.integers(1, 70)))]
+        tick = ticks[-1]
+        opened = {}
+        for t in ticks:
+            sample = rng.normal(size=5)
+            one.append(t, sample)
+            end = -(-t // 100) * 100
+            total = many.window_sum(end)
+            if total is None and end not in opened:
+                opened[end] = sample.copy()  # the window's first sample: its sum
+            else:
+                (opened[end] if total is None else total)[:] += sample
+        many.extend_summed(ticks, opened)
+        assert one.count == many.count and list(one.ticks) == list(many.ticks)
+        assert one._sums.keys() == many._sums.keys()
+        for end, (total, count) in one._sums.items():
+            assert many._sums[end][1] == count and many._sums[end][0].tobytes() == total.tobytes()
+        one.prune(tick - 300)
+        many.prune(tick - 300)
+    with pytest.raises(ValueError, match="time order"):
+        many.extend_summed([tick], {})
+
+
+def test_extend_with_a_prune_keeps_what_extend_then_prune_keeps():
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        ticks = np.cumsum(rng.integers(1, 5, size=rng.integers(1, 20))).tolist()
+        split = int(rng.integers(0, len(ticks)))
+        keep_from = int(rng.integers(-2, ticks[-1] + 3))
+        values = np.array(ticks, dtype=float)[:, None]
+        one, many = tr.SampleHistory(1), tr.SampleHistory(1)
+        for h in (one, many):
+            h.extend(ticks[:split], values[:split])
+        one.extend(ticks[split:], values[split:])
+        one.prune(keep_from)
+        many.extend(ticks[split:], values[split:], keep_from)
+        assert list(many.ticks) == list(one.ticks) == naive_prune(ticks, keep_from)
+        assert [v[0] for v in many.values] == [float(t) for t in many.ticks] and many.count == one.count
