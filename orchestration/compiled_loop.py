@@ -189,6 +189,7 @@ class CompiledLoop:
                     changed = True
         self._port_array = (_Port * max(1, len(self._ports)))(*self._ports)
         self._plans: dict = {}
+        self._templates: dict = {}  # (start in the hyperperiod, steps) -> their program, kept
         self._cached_ops = 0
         self.stretches = 0
         self.steps = 0
@@ -426,11 +427,18 @@ class CompiledLoop:
             return 0
         t0 = min(c.time for c in self.algorithm.ordered)
         if template is None:
-            template = self._template(steps, t0)
-            size = len(template.ops) // 4
-            if remembered and self._cached_ops + size <= PROGRAM_CACHE_OPS:
+            # the same steps from the same place in the hyperperiod make the same program, whatever
+            # the schedule state (near the end of a run, where states are not remembered, most are)
+            key = (t0 % self.algorithm._period, tuple(steps))
+            template = self._templates.get(key)
+            if template is None:
+                template = self._template(steps, t0)
+                size = len(template.ops) // 4
+                if self._cached_ops + size <= PROGRAM_CACHE_OPS:
+                    self._templates[key] = template
+                    self._cached_ops += size
+            if remembered and key in self._templates:
                 plan[2] = template
-                self._cached_ops += size
         fill = self._fill(template, t0)
         if fill is None:
             return 0
