@@ -83,7 +83,9 @@ class Observer(Protocol):
     After a compiled stretch (:mod:`.compiled_loop`) the steps are reported component by
     component, each one's in time order: ``stepped_block(component, ticks, outputs, first_step)``
     with a row per step in ``outputs[port]`` where an observer has it, else ``stepped`` per step.
-    An observer that times or paces steps (``before_step``) keeps the run out of the compiled loop.
+    An observer that times steps (``before_step``) keeps the run out of the compiled loop, unless it
+    is the real-time pacing, which the compiled program does itself and reports with
+    ``paced_block(component, lateness)`` (see :class:`.observers.RealtimePacing`).
     """
 
     def ports(self, component: str) -> list[str]: ...
@@ -224,6 +226,10 @@ class MultirateAlgorithm:
     # -- setup -----------------------------------------------------------------------------------
     def setup(self) -> None:
         """Resolve routes, create and instantiate the hosts, set parameters, enter initialization."""
+        if self.use_compiled_loop:  # built or loaded now, as the FMUs are, not in the run's time
+            from .compiled_loop import load_program_runner
+
+            load_program_runner()
         scene = self.scene
         stepped = [s for s in scene.components.values() if not s.is_continuous]
         for rank, name in enumerate(initialization_order(scene, [s.name for s in stepped])):

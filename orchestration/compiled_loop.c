@@ -9,6 +9,10 @@
  * then carries on from exactly there, in Python, with the error it would have reported itself.
  *
  * The caller releases the GIL (ctypes.CDLL): an FMU that runs Python takes it for its own call.
+ *
+ * A paced run (real-time) is paced here too: a paced step waits for its time on the wall clock
+ * (sleeping until shortly before it where the master may, then spinning), and how late it ended
+ * is written down for the master's pacing statistics.
  */
 #include <math.h>
 #include <stdbool.h>
@@ -65,7 +69,7 @@ enum { CAST_NONE = 0, CAST_BOOL, CAST_INT8, CAST_UINT8, CAST_INT16, CAST_UINT16,
 /* 64-bit integers reach the master's float64 values exactly up to this magnitude */
 #define EXACT_INTEGER 9007199254740992.0
 
-enum { OP_NOP = 0, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW };
+enum { OP_NOP = 0, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE };
 #define NO_KEY INT64_MIN
 
 /* Why the program stopped. */
@@ -81,6 +85,33 @@ static int64_t now_ns(void) {
     struct timespec ts;
     clock_gettime(CLOCK_MONOTONIC, &ts);
     return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+/* The clock the pacing reads, in seconds (the master converts its own origin to it). */
+double pacing_clock(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+/* Real-time pacing of a stretch (see observers.RealtimePacing). */
+typedef struct {
+    double origin;     /* pacing_clock() at simulated time 0 */
+    int64_t pace;      /* 0: only measure how late steps end */
+    int64_t sleep;     /* sleep until `spin` seconds before a due time (else spin all the way) */
+    double spin;
+    double *lateness;  /* per paced step: how late it ended (s; < 0: early) */
+} Pacing;
+
+static void wait_until(double due, const Pacing *pacing) {
+    double ahead = due - pacing_clock();
+    if (pacing->sleep && ahead > pacing->spin) {
+        double rest = ahead - pacing->spin;
+        struct timespec ts = {(time_t)rest, (long)((rest - (double)(time_t)rest) * 1e9)};
+        nanosleep(&ts, NULL);  /* a signal cuts it short: the spin below waits the rest */
+    }
+    while (pacing_clock() < due) {
+    }
 }
 
 /* An output group's native values into float64; -1 when a 64-bit integer is beyond 2**53 (the
@@ -145,7 +176,7 @@ static int from_float64(const Port *p) {
 
 /* ops: n_ops rows of 4 int64 (opcode, a, b, c); ticks in ops count from `t0`, `base` ticks a second. */
 Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, Component *components, Port *ports,
-                   Window *windows) {
+                   Window *windows, const Pacing *pacing) {
     Result result = {0, DONE, 0};
     for (int64_t k = 0; k < n_ops; k++) {
         const int64_t *op = ops + 4 * k;
@@ -221,6 +252,12 @@ Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, 
                 }
                 break;
             }
+            case OP_PACE: /* a paced step from tick t0 + op[1] starts no earlier than its time */
+                if (pacing->pace) wait_until(pacing->origin + (double)(t0 + op[1]) / (double)base, pacing);
+                break;
+            case OP_LATE: /* ... and ends by t0 + op[2]: how late it is, into its slot op[1] */
+                pacing->lateness[op[1]] = (pacing_clock() - pacing->origin) - (double)(t0 + op[2]) / (double)base;
+                break;
             case OP_NOP:
                 break;
             default:

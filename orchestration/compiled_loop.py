@@ -20,8 +20,9 @@ what the Python path gives: the results are bit-identical (tested). The program 
 that fails, logs an error, or whose fmi3DoStep raises a flag; the master replays the steps before
 it and carries on from there in Python, reporting the failure as the Python path reports it.
 
-A component takes part when it runs in this process through the FMI binding, nobody paces its
-steps (``run --realtime`` keeps the Python path, where every step is timed), its connected and
+A component takes part when it runs in this process through the FMI binding, nobody times its
+steps but the real-time pacing (``run --realtime``: the program waits for each paced step's time
+on the wall clock and measures how late it ends, as the pacing does in Python), its connected and
 observed ports are numbers (every numeric type and Boolean; the casts to and from float64 are
 checked as the binding checks them), and the connections between two such components use
 ``hold``. The rest of the scene steps in Python between the stretches. Without a C compiler the
@@ -32,6 +33,7 @@ from __future__ import annotations
 import array
 import ctypes
 import logging
+import time
 from ctypes import c_bool, c_double, c_int64, c_void_p
 
 import numpy as np
@@ -39,6 +41,7 @@ import numpy as np
 from . import transitions as tr
 from .errors import FmuCallError
 from .fmi3 import Fmi3Instance
+from .observers import SPIN_S
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +59,7 @@ _GAP = 16
 _TAPE_BYTES = 8 << 20
 _FLOAT64 = np.dtype(np.float64)
 
-OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW = range(8)
+OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE = range(10)
 #: an OP_SET of a value that is no producer's sample (a source's, an interpolation)
 NO_KEY = -2 ** 63
 DONE, CALL_FAILED, ERROR_LOGGED, STEP_FLAGS, BAD_OP, NOT_EXACT = range(6)
@@ -83,6 +86,11 @@ class _Window(ctypes.Structure):
     _fields_ = [("sum", c_void_p), ("opened", c_int64)]
 
 
+class _Pacing(ctypes.Structure):
+    _fields_ = [("origin", c_double), ("pace", c_int64), ("sleep", c_int64), ("spin", c_double),
+                ("lateness", c_void_p)]
+
+
 class _Result(ctypes.Structure):
     _fields_ = [("ops_done", c_int64), ("reason", c_int64), ("status", c_int64)]
 
@@ -91,7 +99,8 @@ _library_state: dict = {}
 
 
 def load_program_runner():
-    """``run_program`` of the compiled library (built on first use), or None when it cannot be built."""
+    """``run_program`` of the compiled library (built on first use), or None when it cannot be built;
+    its ``clock`` (``pacing_clock``) as an attribute."""
     if "run" not in _library_state:
         from .build import BuildError, compiled_loop_library
 
@@ -103,7 +112,10 @@ def load_program_runner():
         else:
             run = library.run_program
             run.restype = _Result
-            run.argtypes = [c_void_p, c_int64, c_int64, c_int64, c_void_p, c_void_p, c_void_p]
+            run.argtypes = [c_void_p, c_int64, c_int64, c_int64, c_void_p, c_void_p, c_void_p, c_void_p]
+            clock = library.pacing_clock
+            clock.restype, clock.argtypes = c_double, []
+            run.clock = clock
             _library_state["run"] = run
     return _library_state["run"]
 
@@ -131,6 +143,8 @@ class _Member:
         self.listener_ports: list[tuple[str, int, int]] = []
         self.copies: list[tuple[int, int, int]] = []        # (offset in a tape row, output address, size)
         self.windows: list = []         # (output address, size, WindowSums) of its average transitions
+        self.listeners: list = []       # its observers' stepped, the pacing's aside
+        self.paced = False              # its steps are paced in real time
         self.consumer_of: dict = {}     # id of one of its histories -> the component that reads it
         self.tape = np.empty((0, 0))    # its outputs in a stretch, one row per step
         self.tape_address = 0
@@ -147,7 +161,8 @@ class _Template:
 
     def __init__(self):
         self.ops = array.array("q")
-        self.steps: list[tuple] = []      # (rank, tick, row, index of its last op + 1, its window slots)
+        #: (rank, tick, row, index of its last op + 1, its window slots, its lateness slot or -1)
+        self.steps: list[tuple] = []
         self.sources: list[tuple] = []    # (source, its ticks, [(port, staging rows)]): continuous sources' values
         #: values read from histories that stay, per route: (route, its ops' indices (an array and a
         #: list), their taus, the value's size)
@@ -159,6 +174,8 @@ class _Template:
         #: its steps added to: what the replay of a whole stretch needs
         self.replay: dict[int, tuple] = {}
         self.codes = np.empty(0, dtype=np.int64)  # the ops' codes: a view of ``ops``
+        self.first_paced: int | None = None  # tick of the first paced step
+        self.lateness = np.empty(0)        # how late each paced step ended (slots in step order)
 
 
 class CompiledLoop:
@@ -168,12 +185,17 @@ class CompiledLoop:
         self.algorithm = algorithm
         self._run_program = run_program
         comps = algorithm.ordered
+        pacers = {id(observer): observer for c in comps for hook in c.pre_step
+                  if _is_pacer(observer := getattr(hook, "__self__", None))}
+        #: the real-time pacing, which the program does for the steps it paces (one at most)
+        self.pacer = next(iter(pacers.values())) if len(pacers) == 1 else None
+        self._pacing = _Pacing(0.0, 0, 0, SPIN_S, None)
         self._records = (_Component * len(comps))()
         self._ports: list[_Port] = []
         self._port_objects: list = []   # the binding's records, for error messages (call names)
         self.members: dict[int, _Member] = {}
         for comp in comps:
-            if self._can_take_part(comp):
+            if self._can_take_part(comp) and len(pacers) <= 1:
                 self.members[comp.rank] = self._member(comp)
         # a connection between two members must be a hold (the value a consumer reads is a sample),
         # between ports of one size (the scene checks it; the program copies the consumer's size)
@@ -213,10 +235,12 @@ class CompiledLoop:
             return False
         if "fmi3DoStep" not in instance.library.functions:
             return False  # the Python path reports it
-        if comp.pre_step:  # someone times each step (real-time pacing)
-            return False
+        if not all(_is_pacer(getattr(hook, "__self__", None)) for hook in comp.pre_step):
+            return False  # someone times each step: only the real-time pacing is done in the program
         for listener in comp.listeners:
             observer = getattr(listener, "__self__", None)
+            if _is_pacer(observer):
+                continue
             if observer is None or not hasattr(observer, "ports") or hasattr(observer, "subscribes"):
                 return False  # an observer that reads ports it does not name
         for histories in comp.histories.values():
@@ -262,8 +286,10 @@ class CompiledLoop:
             self._port_objects.append(group)
         member.step_ops = tuple(step_ops) + (OP_END, comp.rank, 0, 0)
         # The tape: the observed output buffer's ranges that hold what histories keep and observers read.
+        member.listeners = [listener for listener in comp.listeners if not _is_pacer(listener.__self__)]
+        member.paced = self.pacer is not None and self.pacer.paced(comp)
         wanted: list[str] = []
-        for listener in comp.listeners:
+        for listener in member.listeners:
             for name in listener.__self__.ports(comp.name):
                 if name not in wanted:
                     wanted.append(name)
@@ -304,7 +330,8 @@ class CompiledLoop:
     # -- planning ------------------------------------------------------------------------------------
     def _plan(self) -> list:
         """``[steps, span, template, remembered]``: the steps ``(rank, tick)`` the scheduler makes next
-        while they are members' steps, ticks counted from the slowest component's; how far they
+        while they are members' steps (in a paced run, up to the next paced tick), ticks counted from
+        the slowest component's; how far they
         reach; their program once made and kept; whether the plan is remembered for its schedule
         state (not near the end of the run)."""
         algorithm = self.algorithm
@@ -322,6 +349,7 @@ class CompiledLoop:
         steps: list[tuple[int, int]] = []
         counts = dict.fromkeys(members, 0)
         lookahead = algorithm._lookahead
+        paced_tick = None
         while len(steps) < MAX_STEPS:
             decision = algorithm._decide_at(times, running, lookahead)
             if decision is None or not decision[0] or decision[1] not in members:
@@ -329,6 +357,14 @@ class CompiledLoop:
             rank = decision[1]
             if counts[rank] == members[rank].capacity:
                 break
+            if members[rank].paced:
+                # A paced run waits for every tick: a stretch of one tick leaves the master's own work
+                # (a worker's step collected, the replay) to the wait before the next, where stretches
+                # of 33 ticks lumped it before their first (140 of 8000 deadlines missed, against 0)
+                if paced_tick is None:
+                    paced_tick = times[rank]
+                elif times[rank] != paced_tick:
+                    break
             counts[rank] += 1
             steps.append((rank, times[rank] - t_min))
             times[rank] += comps[rank].step
@@ -354,9 +390,14 @@ class CompiledLoop:
         staging: dict = {}   # route -> (its staging rows, [(row, tau)])
         patches: dict = {}   # route -> ([op index], [tau], size) of the values read from histories that stay
         windows: dict = {}   # (WindowSums, end tick, size) -> slot
+        late_slots = 0
         for rank, tick in steps:
             comp = comps[rank]
             member = members[rank]
+            if member.paced:
+                ops.extend((OP_PACE, tick, 0, 0))
+                if template.first_paced is None:
+                    template.first_paced = tick
             ops.extend((OP_BEGIN, rank, 0, 0))
             for route in member.routes:
                 tau = tick + route.need_offset
@@ -402,8 +443,13 @@ class CompiledLoop:
                 slot = windows.setdefault((history, end, size), len(windows))
                 ops.extend((OP_WINDOW, slot, address, size))
                 slots.append(slot)
-            template.steps.append((rank, tick, row, len(ops) // 4, slots))
+            late = -1
+            if member.paced:
+                late, late_slots = late_slots, late_slots + 1
+                ops.extend((OP_LATE, late, sample_tick, 0))
+            template.steps.append((rank, tick, row, len(ops) // 4, slots, late))
         template.counts = rows
+        template.lateness = np.empty(late_slots)
         template.patches = [(route, np.array(indices, dtype=np.int64), indices, taus, size)
                             for route, (indices, taus, size) in patches.items()]
         template.codes = np.frombuffer(ops, dtype=np.int64)[::4]  # (ops keeps its size from here on)
@@ -514,9 +560,18 @@ class CompiledLoop:
                 port.has_key = route.last_key is not None
                 port.last_key = route.last_key if route.last_key is not None else 0
         marks = {member.comp.rank: len(member.instance.messages) for member in taking_part}
+        pacing = self._pacing
+        if template.first_paced is not None:
+            pacer = self.pacer
+            # the pacing's origin, from its clock (time.perf_counter) to the program's
+            origin = pacer.clock_origin(t0 + template.first_paced)
+            pacing.origin = origin + (self._run_program.clock() - time.perf_counter())
+            pacing.pace, pacing.sleep = pacer.pace, pacer.sleeps
+            pacing.lateness = _address(template.lateness)
         ops = template.ops
         result = self._run_program(ops.buffer_info()[0], len(ops) // 4, t0, algorithm.base,
-                                   ctypes.addressof(records), ctypes.addressof(ports), ctypes.addressof(windows))
+                                   ctypes.addressof(records), ctypes.addressof(ports), ctypes.addressof(windows),
+                                   ctypes.addressof(pacing))
         stopped_at = result.ops_done
         made = 0
         for step in template.steps:
@@ -549,14 +604,16 @@ class CompiledLoop:
 
     def _replay_data(self, steps: list[tuple]) -> dict[int, tuple]:
         """Per rank of ``steps`` (a template's, or the first of them): its steps' end ticks from the
-        stretch's start, its first and last tape rows, for each of its windows the slots it added to."""
+        stretch's start, its first and last tape rows, for each of its windows the slots it added to,
+        its lateness slots."""
         comps = self.algorithm.ordered
         data = {}
         for rank in dict.fromkeys(step[0] for step in steps):
             own = [step for step in steps if step[0] == rank]
             comp_step = comps[rank].step
             slots = [sorted({step[4][w] for step in own}) for w in range(len(self.members[rank].windows))]
-            data[rank] = ([step[1] + comp_step for step in own], own[0][2], own[-1][2], slots)
+            late = [step[5] for step in own if step[5] >= 0]
+            data[rank] = ([step[1] + comp_step for step in own], own[0][2], own[-1][2], slots, late)
         return data
 
     def _replay(self, template: _Template, t0: int, made: int, opened: dict) -> None:
@@ -566,19 +623,21 @@ class CompiledLoop:
         base = self.algorithm.base
         data = template.replay if made == len(template.steps) else self._replay_data(template.steps[:made])
         blocks = []
-        for rank, (ends, first_row, last_row, window_slots) in data.items():  # where each is now
+        for rank, (ends, first_row, last_row, window_slots, late) in data.items():  # where each is now
             member = self.members[rank]
             comp = member.comp
             blocks.append((member, comp.steps, [t0 + end for end in ends], member.tape[first_row:last_row + 1],
-                           window_slots))
+                           window_slots, late))
             comp.time = t0 + ends[-1]
             comp.steps += len(ends)
             member.instance.time = comp.time / base
             comp.host.terminate_requested = comp.host.early_return = False
             comp.host.last_successful_time = member.instance.time
             comp.outputs = member.instance.output_views
-        for member, first_step, ticks, rows, window_slots in blocks:  # what each made
+        for member, first_step, ticks, rows, window_slots, late in blocks:  # what each made
             comp = member.comp
+            if late:
+                self.pacer.paced_block(comp, template.lateness[late])
             window_index = 0
             for name, histories in comp.histories.items():
                 kept = None  # one copy of the samples for the histories that keep them
@@ -595,9 +654,9 @@ class CompiledLoop:
                                 for slot in window_slots[window_index] if slot in opened}
                         history.extend_summed(ticks, sums)
                         window_index += 1
-            if comp.listeners:
+            if member.listeners:
                 columns = {name: rows[:, offset:offset + size] for name, offset, size in member.listener_ports}
-                for listener in comp.listeners:
+                for listener in member.listeners:
                     stepped_block = getattr(listener.__self__, "stepped_block", None)
                     if stepped_block is not None:
                         stepped_block(comp, ticks, columns, first_step)
@@ -651,6 +710,13 @@ class CompiledLoop:
         call = self._port_objects[op[1]].call
         instance._check(call, int(result.status), mark)
         raise FmuCallError(comp.name, call, instance.time, instance._logged_reason(mark), int(result.status))
+
+
+def _is_pacer(observer) -> bool:
+    """Whether ``observer`` paces steps in real time in a way the program can do itself
+    (:class:`.observers.RealtimePacing`: ``paced``, ``clock_origin``, ``pace``, ``sleeps``,
+    ``paced_block``)."""
+    return hasattr(observer, "paced_block")
 
 
 def _sample_between(history, after: int, until: int) -> bool:

@@ -118,12 +118,27 @@ def test_a_call_that_fails_inside_a_stretch_is_reported_as_the_python_path_repor
     assert compiled.algorithm.compiled_loop.steps > 900
 
 
-def test_real_time_pacing_keeps_every_step_in_python(built, tmp_path):
-    """A paced run times each step: the loop stays out of it."""
-    scene = load_scene("catheter_tube", {"duration": 0.05})
-    simulation, summary = _run(scene, tmp_path / "paced", True, realtime=True)
-    assert summary["status"] == "completed"
-    assert simulation.algorithm.compiled_loop is None
+def test_a_paced_run_is_paced_and_measured_by_the_compiled_loop(built, tmp_path):
+    """Real-time pacing in the program, a tick per stretch: the same results as the paced Python path;
+    every haptic step waited for its time on the wall clock (none ended more than its own step early,
+    so the run took its simulated time) and its lateness reached the summary."""
+    scene = load_scene("catheter_tube", {"duration": 0.3})
+    simulation, summary = _run(scene, tmp_path / "compiled", True, realtime=True)
+    python, python_summary = _run(scene, tmp_path / "python", False, realtime=True)
+    compiled_files, python_files = _files(tmp_path / "compiled"), _files(tmp_path / "python")
+    assert compiled_files.keys() == python_files.keys()
+    for name, data in compiled_files.items():
+        assert data == python_files[name], f"{name} differs"
+    loop = simulation.algorithm.compiled_loop
+    haptic_steps = summary["components"]["catheter"]["steps"] + summary["components"]["contact"]["steps"]
+    assert loop.steps >= 0.95 * haptic_steps  # paced in C, not stepped from Python
+    assert loop.stretches >= 0.95 * 300  # a stretch per paced tick: the master's work goes in the waits
+    deadlines = summary["deadlines"]
+    assert deadlines["haptic_steps"] == python_summary["deadlines"]["haptic_steps"] == haptic_steps
+    pacer = next(o for o in simulation.algorithm.observers if hasattr(o, "paced_block"))
+    assert len(pacer.lateness) == haptic_steps
+    assert min(pacer.lateness) >= -0.001 - 1e-9  # a step starts at its time, so ends at most 1 ms early
+    assert summary["wall_time_s"] >= 0.3 - 0.001
 
 
 @pytest.fixture(scope="module")
