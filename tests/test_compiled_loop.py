@@ -217,8 +217,8 @@ STEPS_MS = (1, 2, 3, 4, 5, 6, 10)
 @st.composite
 def ramp_chains(draw):
     """Two to four Ramp FMUs at random rates, each one's y or integral into the next one's u through a
-    random transition and ordering, perhaps a jacobi loop back to the first, and perhaps one in a
-    worker; scenes the checks refuse are rejected."""
+    random transition and ordering, perhaps a jacobi loop back to the first, perhaps one in a
+    worker, sometimes paced in real time; scenes the checks refuse are rejected."""
     n = draw(st.integers(2, 4))
     steps = [draw(st.sampled_from(STEPS_MS)) for _ in range(n)]
     worker = draw(st.one_of(st.none(), st.integers(0, n - 1))) if draw(st.booleans()) and draw(st.booleans()) else None
@@ -233,13 +233,14 @@ def ramp_chains(draw):
         connections.append({"from": f"r{n - 1}.y", "to": "r0.u", "transition": "hold", "ordering": "jacobi"})
     lcm = math.lcm(*steps)
     duration = Fraction(lcm * draw(st.integers(1, max(1, 120 // lcm))), 1000)
-    return steps, connections, worker, duration
+    paced = draw(st.integers(0, 3)) == 0  # (a paced run takes its duration on the wall clock)
+    return steps, connections, worker, duration, paced
 
 
 @settings(deadline=None)
 @given(case=ramp_chains())
 def test_random_multirate_scenes_run_compiled_as_in_python(conformance_fmus, tmp_path_factory, case):
-    steps, connections, worker, duration = case
+    steps, connections, worker, duration, paced = case
     note(repr(case))
     fmus = {f"r{i}": {"path": str(conformance_fmus["Ramp"]), "step": Fraction(ms, 1000).limit_denominator()}
             for i, ms in enumerate(steps)}
@@ -256,10 +257,13 @@ def test_random_multirate_scenes_run_compiled_as_in_python(conformance_fmus, tmp
         scene = scene_from_dict(data, tmp)
     except SceneError:
         assume(False)  # a transition these rates cannot take, an algebraic loop
-    (compiled, summary), _ = _same_run(scene, tmp)
+    (compiled, summary), (_, python_summary) = _same_run(scene, tmp, realtime=paced)
     assert summary["status"] == "completed", summary["error"]
+    if paced:  # every step of the fastest rate paced and measured, in C or in Python
+        assert summary["deadlines"]["haptic_steps"] == python_summary["deadlines"]["haptic_steps"] > 0
+        assert summary["wall_time_s"] >= float(duration) - min(steps) / 1000 - 1e-9
     loop = compiled.algorithm.compiled_loop
-    event(f"compiled steps: {'none' if loop is None or not loop.steps else 'some'}")
+    event(f"compiled steps: {'none' if loop is None or not loop.steps else 'some'}{', paced' if paced else ''}")
 
 
 def test_programs_made_afresh_for_each_stretch_give_the_same_run(built, tmp_path, monkeypatch):
