@@ -138,7 +138,6 @@ class _Member:
         self.last_values: dict = {}     # route -> the float64 buffer of the last value set
         self.written: dict = {}         # route -> the last value the loop handed back (its buffer holds it)
         self.step_ops: tuple = ()       # the ops after its fmi3DoStep: read the outputs, stop the clock
-        self.tape_ports: list[tuple[str, int, int]] = []     # (port, offset in a tape row, size)
         self.tape_offsets: dict[str, int] = {}
         self.listener_ports: list[tuple[str, int, int]] = []
         self.copies: list[tuple[int, int, int]] = []        # (offset in a tape row, output address, size)
@@ -169,7 +168,6 @@ class _Template:
         self.patches: list[tuple] = []
         self.windows: list[tuple] = []    # (WindowSums, end tick, size) per window slot
         self.constants: list[tuple] = []  # (op index, route) of the one set of a constant source's value
-        self.counts: dict[int, int] = {}  # rank -> steps in the stretch
         #: rank -> its steps' end ticks, its first and last tape rows, for each of its windows the slots
         #: its steps added to: what the replay of a whole stretch needs
         self.replay: dict[int, tuple] = {}
@@ -313,11 +311,8 @@ class CompiledLoop:
                 if start <= name_start < start + size:
                     member.tape_offsets[name] = width + name_start - start
             width += size
-        for name in wanted:
-            item = (name, member.tape_offsets[name], views[name].size)
-            member.tape_ports.append(item)
-            if name in listened:
-                member.listener_ports.append(item)
+        member.listener_ports = [(name, member.tape_offsets[name], views[name].size) for name in wanted
+                                 if name in listened]
         member.consumer_of = {id(route.history): consumer for consumer, route in comp.consumers}
         member.windows = [(_address(views[name]), views[name].size, history)
                           for name, histories in comp.histories.items() for history in histories
@@ -331,9 +326,8 @@ class CompiledLoop:
     def _plan(self) -> list:
         """``[steps, span, template, remembered]``: the steps ``(rank, tick)`` the scheduler makes next
         while they are members' steps (in a paced run, up to the next paced tick), ticks counted from
-        the slowest component's; how far they
-        reach; their program once made and kept; whether the plan is remembered for its schedule
-        state (not near the end of the run)."""
+        the slowest component's; how far they reach; their program once made and kept; whether the
+        plan is remembered for its schedule state (not near the end of the run)."""
         algorithm = self.algorithm
         comps = algorithm.ordered
         times = [c.time for c in comps]
@@ -376,8 +370,8 @@ class CompiledLoop:
 
     def _template(self, steps: list[tuple[int, int]], t0: int) -> _Template:
         """The program of a stretch of ``steps`` (ticks from the stretch's start ``t0``): what is known
-        before its values are (see :meth:`_fill`). It serves every stretch from the same schedule
-        state, whose start is the same modulo the hyperperiod (which each window divides)."""
+        before its values are (see :meth:`_fill`). It serves every stretch of the same steps that
+        starts at the same place in the hyperperiod (which each window divides)."""
         comps = self.algorithm.ordered
         members = self.members
         template = _Template()
@@ -448,7 +442,6 @@ class CompiledLoop:
                 late, late_slots = late_slots, late_slots + 1
                 ops.extend((OP_LATE, late, sample_tick, 0))
             template.steps.append((rank, tick, row, len(ops) // 4, slots, late))
-        template.counts = rows
         template.lateness = np.empty(late_slots)
         template.patches = [(route, np.array(indices, dtype=np.int64), indices, taus, size)
                             for route, (indices, taus, size) in patches.items()]
@@ -545,7 +538,7 @@ class CompiledLoop:
         records = self._records
         members = self.members
         ports = self._port_array
-        taking_part = [members[rank] for rank in template.counts]
+        taking_part = [members[rank] for rank in template.replay]
         for member in taking_part:
             record = records[member.comp.rank]
             record.busy_ns = 0

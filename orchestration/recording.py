@@ -84,14 +84,17 @@ class _Stream:
         than the flushes)."""
         self.filled += 1
         if self.filled == len(self.rows):
-            self.rows = np.concatenate([self.rows, np.empty_like(self.rows)])
+            self._double()
 
     def reserve(self, rows: int) -> np.ndarray:
         """The next ``rows`` rows of the block (to be filled, then counted with ``filled += rows``);
-        the block grows so that a row stays free after them."""
+        the block doubles until a row stays free after them."""
         while self.filled + rows >= len(self.rows):
-            self.rows = np.concatenate([self.rows, np.empty_like(self.rows)])
+            self._double()
         return self.rows[self.filled:self.filled + rows]
+
+    def _double(self) -> None:
+        self.rows = np.concatenate([self.rows, np.empty_like(self.rows)])
 
     def take(self) -> np.ndarray | None:
         """The filled rows (a copy), the block emptied; None when there are none."""
