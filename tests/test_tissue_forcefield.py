@@ -320,6 +320,27 @@ def test_tangent_matches_finite_differences(law):
         assert 0.1 < ff.nonlinear_fraction < 1.0  # the correction (and its ramp) is really active
 
 
+@pytest.mark.parametrize("subset", [False, True])
+def test_etmm_strain_energy_is_half_u_secant_stiffness_u(subset):
+    """The secant energy 1/2 sum_T (1 + phi_T) u_T.K_T u_T, taken in one pass over the elements, is
+    1/2 u.K_sec(u) u with K_sec the secant tangent that add_forces leaves at u (assembled by columns),
+    with all tets candidates and with a subset; and 1/2 u.K u from the numpy FEM reference when no
+    element is over the threshold."""
+    pts, tets, _ = _mesh(div=(3, 3, 2), jitter=0.2)
+    rng = np.random.default_rng(16)
+    u = 0.006 * rng.normal(size=pts.shape) + 0.03 * pts * np.array([1.0, -0.3, 0.2])
+    nonlinear = rng.random(tets.shape[0]) < 0.3 if subset else None
+    ff = TensorMassForceField(pts, tets, E_RV, 0.45, law="etmm", nonlinear_strain_threshold=0.05,
+                              nonlinear_elements=nonlinear)
+    _force(ff, u)
+    assert ff.nonlinear_fraction > 0.05  # the correction takes part
+    secant = _dense(ff.tangent_matvec, pts.shape[0])
+    assert ff.strain_energy(u) == pytest.approx(0.5 * u.reshape(-1) @ secant @ u.reshape(-1), rel=1e-12)
+    small = 1e-4 * u  # strains about 3e-6: no element over the threshold
+    k = _reference_linear_K(pts, tets, E_RV, 0.45)
+    assert ff.strain_energy(small) == pytest.approx(0.5 * small.reshape(-1) @ k @ small.reshape(-1), rel=1e-12)
+
+
 def test_etmm_secant_tangent_is_symmetric_and_reproduces_the_force():
     """The CG tangent of etmm is K + sum_T phi_T K_T at the current state: symmetric, PSD, and
     f(u) = -K_sec(u) u exactly (secant property).  It omits d(phi)/du, so it is NOT the FD slope."""

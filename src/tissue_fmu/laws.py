@@ -141,6 +141,8 @@ class ETMMLaw(_StiffeningLaw):
         self._phi = np.zeros(m_a)
         self._nonlinear_ids = np.zeros(m_a, dtype=np.int64)
         self._nonlinear_count = 0
+        self._candidate_mask = np.zeros(m_a, dtype=np.uint8)  # 1 for the tets that may turn non-linear
+        self._candidate_mask[ff._candidates] = 1
         # Consistent-tangent data of the super-threshold elements (etmm_tangent_data), grown on demand.
         self._tangent_stale = True
         self._tangent_p = np.zeros(0)
@@ -158,8 +160,6 @@ class ETMMLaw(_StiffeningLaw):
             self._edge_screen = edge_screen_limits(ff._points, ff._tets, k.edges, k.element_edges,
                                                    ff.nonlinear_strain_threshold)
             self._edge_elem_ptr, self._edge_elem_ids = edge_element_adjacency(k.element_edges, k.edges.shape[0])
-            self._candidate_mask = np.zeros(m_a, dtype=np.uint8)
-            self._candidate_mask[ff._candidates] = 1
             self._stamp = np.zeros(m_a, dtype=np.int64)
             self._stamp_value = 0
             self._flagged = np.empty(k.edges.shape[0], dtype=np.int64)
@@ -258,15 +258,9 @@ class ETMMLaw(_StiffeningLaw):
     def strain_energy(self, u) -> float:
         """Secant energy 1/2 sum (1 + phi_T) u_T.K_T u_T."""
         ff = self.ff
-        energy = super().strain_energy(u)
-        phi = np.zeros_like(self._phi)
-        ids = np.zeros_like(self._nonlinear_ids)
-        scratch = np.zeros_like(u)
-        count = kernels.etmm_correction(ff._tets, ff._grads, ff._volumes, ff._lam, ff._mu, ff._candidates, u,
-                                        ff.nonlinear_strain_threshold, ff._beta_over_alpha, phi, ids, scratch)
-        energy += float(kernels.scaled_elements_energy(ff._tets, ff._grads, ff._volumes, ff._lam, ff._mu,
-                                                       ids, count, phi, u))
-        return energy
+        return float(kernels.etmm_secant_energy(ff._tets, ff._grads, ff._volumes, ff._lam, ff._mu,
+                                                self._candidate_mask, u, ff.nonlinear_strain_threshold,
+                                                ff._beta_over_alpha))
 
     def stiffening_margin(self, strain: float) -> float:
         margin = super().stiffening_margin(strain)

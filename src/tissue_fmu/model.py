@@ -14,6 +14,7 @@ from numbers import Integral, Real
 
 import numpy as np
 
+from . import kernels
 from .forcefield import TensorMassForceField
 from .integrators import (
     BackwardEuler,
@@ -597,7 +598,7 @@ class TissueModel:
 
     @property
     def kinetic_energy(self) -> float:
-        return 0.5 * float(np.dot(self.masses, np.einsum("ij,ij->i", self.velocity, self.velocity)))
+        return float(kernels.kinetic_energy(self.masses, self.velocity))
 
     @property
     def max_strain(self) -> float:
