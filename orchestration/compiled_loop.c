@@ -61,6 +61,8 @@ typedef struct {
 typedef struct {
     double *sum;
     int64_t opened;    /* 0 until its first sample is copied in */
+    int64_t count;     /* its samples from before the program */
+    int64_t size;      /* values per sample */
 } Window;
 
 enum { CAST_NONE = 0, CAST_BOOL, CAST_INT8, CAST_UINT8, CAST_INT16, CAST_UINT16, CAST_INT32, CAST_UINT32,
@@ -69,7 +71,7 @@ enum { CAST_NONE = 0, CAST_BOOL, CAST_INT8, CAST_UINT8, CAST_INT16, CAST_UINT16,
 /* 64-bit integers reach the master's float64 values exactly up to this magnitude */
 #define EXACT_INTEGER 9007199254740992.0
 
-enum { OP_NOP = 0, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE };
+enum { OP_NOP = 0, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE, OP_MEAN };
 #define NO_KEY INT64_MIN
 
 /* Why the program stopped. */
@@ -250,6 +252,14 @@ Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, 
                 } else {
                     for (int64_t i = 0; i < op[3]; i++) w->sum[i] += value[i];
                 }
+                break;
+            }
+            case OP_MEAN: { /* the mean of window op[1], its samples from before and op[3] of this program, into
+                             * op[2] (each sum divided by their number, as numpy divides it) */
+                const Window *w = windows + op[1];
+                double *mean = (double *)(uintptr_t)op[2];
+                double n = (double)(w->count + op[3]);
+                for (int64_t i = 0; i < w->size; i++) mean[i] = w->sum[i] / n;
                 break;
             }
             case OP_PACE: /* a paced step from tick t0 + op[1] starts no earlier than its time */

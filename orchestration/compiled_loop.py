@@ -2,9 +2,11 @@
 
 Between two events that need the master itself (a worker's step starting or being collected, a
 component it cannot compile), a run is a stretch of steps of in-process FMUs: in the default
-scene, the catheter and the contact at 1 kHz for the 33 or 34 ticks between two 30 Hz tissue
-frames. Python's cost per step (routing values, reading outputs, filling histories) is about
-twice the models' own. Here each stretch is planned by the algorithm's own scheduler
+scene, the catheter and the contact at 1 kHz for the 33 or 34 ticks between two frames of the
+30 Hz tissue in its worker; with every FMU in process, all three for up to ``MAX_STEPS`` steps,
+ending where they began in the hyperperiod (so that the next stretch runs the same program).
+Python's cost per step (routing values, reading outputs, filling histories) is about twice the
+models' own. Here each stretch is planned by the algorithm's own scheduler
 (:meth:`MultirateAlgorithm._decide_at`) and routing rules, and written as a flat program of FMI
 calls and copies that C runs in one go:
 
@@ -12,7 +14,8 @@ calls and copies that C runs in one go:
   that the Python path would make (the same transition, key and bitwise comparison with the last
   value set), ``fmi3DoStep``, the observed outputs' ``fmi3Get*``;
 * the samples other components read (copied to a tape), window sums of ``average`` transitions
-  added as the samples arrive, the ports the observers read (copied to the tape).
+  added as the samples arrive (and divided by their number when a member reads the mean), the
+  ports the observers read (copied to the tape).
 
 Afterwards the master replays the stretch in Python (histories, observers, step counts) from the
 tape, so that everything downstream (recording, statistics, the next step's inputs) sees exactly
@@ -25,8 +28,8 @@ steps but the real-time pacing (``run --realtime``: the program waits for each p
 on the wall clock and measures how late it ends, as the pacing does in Python), its connected and
 observed ports are numbers (every numeric type and Boolean; the casts to and from float64 are
 checked as the binding checks them), and the connections between two such components use
-``hold``. The rest of the scene steps in Python between the stretches. Without a C compiler the
-whole run stays in Python (logged once).
+``hold`` or ``average``. The rest of the scene steps in Python between the stretches. Without a C
+compiler the whole run stays in Python (logged once).
 """
 from __future__ import annotations
 
@@ -45,8 +48,11 @@ from .observers import SPIN_S
 
 logger = logging.getLogger(__name__)
 
-#: Most steps in one stretch (the program's size; a stretch ends earlier at any event of its own)
-MAX_STEPS = 1024
+#: Most steps in one stretch (the program's size; a stretch ends earlier at any event of its own).
+#: Longer stretches replay less often but take longer to plan and to make a program of; with every
+#: FMU of the default scene in process, 4 s runs took 29 ms of the master's Python at 512 steps,
+#: 31 ms at 256 and 38 ms at 1024 (plan, program, fill and replay; three runs each)
+MAX_STEPS = 512
 #: Stretches planned from the same schedule state are remembered (up to this many states) ...
 PLAN_CACHE_LIMIT = 10_000
 #: ... and their programs up to this many operations in all (32 bytes each): a rate mix with many
@@ -59,7 +65,7 @@ _GAP = 16
 _TAPE_BYTES = 8 << 20
 _FLOAT64 = np.dtype(np.float64)
 
-OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE = range(10)
+OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE, OP_MEAN = range(11)
 #: an OP_SET of a value that is no producer's sample (a source's, an interpolation)
 NO_KEY = -2 ** 63
 DONE, CALL_FAILED, ERROR_LOGGED, STEP_FLAGS, BAD_OP, NOT_EXACT = range(6)
@@ -83,7 +89,7 @@ class _Port(ctypes.Structure):
 
 
 class _Window(ctypes.Structure):
-    _fields_ = [("sum", c_void_p), ("opened", c_int64)]
+    _fields_ = [("sum", c_void_p), ("opened", c_int64), ("count", c_int64), ("size", c_int64)]
 
 
 class _Pacing(ctypes.Structure):
@@ -167,6 +173,7 @@ class _Template:
         #: list), their taus, the value's size)
         self.patches: list[tuple] = []
         self.windows: list[tuple] = []    # (WindowSums, end tick, size) per window slot
+        self.means: list[np.ndarray] = []  # where the windows' means read in the stretch are made
         self.constants: list[tuple] = []  # (op index, route) of the one set of a constant source's value
         #: rank -> its steps' end ticks, its first and last tape rows, for each of its windows the slots
         #: its steps added to: what the replay of a whole stretch needs
@@ -195,14 +202,15 @@ class CompiledLoop:
         for comp in comps:
             if self._can_take_part(comp) and len(pacers) <= 1:
                 self.members[comp.rank] = self._member(comp)
-        # a connection between two members must be a hold (the value a consumer reads is a sample),
-        # between ports of one size (the scene checks it; the program copies the consumer's size)
+        # a connection between two members must be a hold (the value a consumer reads is a sample) or
+        # an average (the mean of a window the program sums), between ports of one size (the scene
+        # checks it; the program copies the consumer's size)
         changed = True
         while changed:
             changed = False
             for rank, member in list(self.members.items()):
                 if any(r.producer is not None and r.producer.rank in self.members and (
-                        not isinstance(r.transition, tr.Hold) or member.last_values[r].size !=
+                        not isinstance(r.transition, (tr.Hold, tr.Average)) or member.last_values[r].size !=
                         self.members[r.producer.rank].instance.output_views[r.spec.source_port].size)
                        for r in member.routes):
                     del self.members[rank]
@@ -343,13 +351,25 @@ class CompiledLoop:
         steps: list[tuple[int, int]] = []
         counts = dict.fromkeys(members, 0)
         lookahead = algorithm._lookahead
+        period = algorithm._period
         paced_tick = None
-        while len(steps) < MAX_STEPS:
-            decision = algorithm._decide_at(times, running, lookahead)
-            if decision is None or not decision[0] or decision[1] not in members:
-                break
-            rank = decision[1]
-            if counts[rank] == members[rank].capacity:
+        aligned = None  # (steps, times) where every component last stood at one multiple of the period
+        while True:
+            if times[0] % period == 0 and times.count(times[0]) == len(times) and not any(running) and steps:
+                aligned = (len(steps), list(times))
+            full = len(steps) == MAX_STEPS
+            if not full:
+                decision = algorithm._decide_at(times, running, lookahead)
+                if decision is None or not decision[0] or decision[1] not in members:
+                    break
+                rank = decision[1]
+                full = counts[rank] == members[rank].capacity
+            if full:
+                # a full stretch ends where it started in the hyperperiod, so that the next is its twin
+                # (the same plan and program) rather than a new program for every stretch
+                if aligned is not None:
+                    del steps[aligned[0]:]
+                    times = aligned[1]
                 break
             if members[rank].paced:
                 # A paced run waits for every tick: a stretch of one tick leaves the master's own work
@@ -384,6 +404,8 @@ class CompiledLoop:
         staging: dict = {}   # route -> (its staging rows, [(row, tau)])
         patches: dict = {}   # route -> ([op index], [tau], size) of the values read from histories that stay
         windows: dict = {}   # (WindowSums, end tick, size) -> slot
+        added: dict[int, int] = {}  # window slot -> the samples added to it so far in the program
+        means: dict = {}     # route -> the array its window's mean is made in
         late_slots = 0
         for rank, tick in steps:
             comp = comps[rank]
@@ -411,14 +433,22 @@ class CompiledLoop:
                     ops.extend((OP_SET, index, _address(values[len(items) - 1]), NO_KEY))
                     continue
                 producer = route.producer.rank
-                if producer in produced:  # a hold of a sample made in this stretch, if there is one by tau
+                size = member.last_values[route].size
+                slot = windows.get((route.history, tau, size)) if isinstance(route.transition, tr.Average) else None
+                if slot is not None:  # an average over a window the stretch adds to: its mean, made when read
+                    mean = means.setdefault(route, np.empty(size))
+                    ops.extend((OP_MEAN, slot, _address(mean), added[slot]))
+                    ops.extend((OP_SET, index, _address(mean), NO_KEY))
+                    continue
+                if producer in produced and isinstance(route.transition, tr.Hold):
+                    # a hold of a sample made in this stretch, if there is one by tau
                     sample = next(((t, address) for t, address in reversed(produced[producer]) if t <= tau), None)
                     if sample is not None:
                         offset = members[producer].tape_offsets[route.spec.source_port]
                         ops.extend((OP_SET, index, sample[1] + 8 * offset, sample[0]))
                         continue
                 # a sample from before the stretch (its producer's history does not change in it)
-                patch = patches.setdefault(route, ([], [], member.last_values[route].size))
+                patch = patches.setdefault(route, ([], [], size))
                 patch[0].append(len(ops) // 4)
                 patch[1].append(tau)
                 ops.extend((OP_NOP, index, 0, 0))
@@ -435,6 +465,7 @@ class CompiledLoop:
             for address, size, history in member.windows:
                 end = -(-(t0 + sample_tick) // history.window) * history.window - t0  # from the stretch's start
                 slot = windows.setdefault((history, end, size), len(windows))
+                added[slot] = added.get(slot, 0) + 1
                 ops.extend((OP_WINDOW, slot, address, size))
                 slots.append(slot)
             late = -1
@@ -454,6 +485,7 @@ class CompiledLoop:
             group[2].append((route.spec.source_port, values))
         template.sources = list(groups.values())
         template.windows = list(windows)
+        template.means = list(means.values())
         return template
 
     # -- one stretch ---------------------------------------------------------------------------------
@@ -529,6 +561,8 @@ class CompiledLoop:
                 existing = opened[slot] = np.empty(size)
             windows[slot].opened = int(slot not in opened)
             windows[slot].sum = _address(existing)
+            windows[slot].count = history.window_count(t0 + end)
+            windows[slot].size = size
             keep.append(existing)
         return keep, windows, opened
 

@@ -133,6 +133,11 @@ class WindowSums:
         entry = self._sums.get(end)
         return None if entry is None else entry[0]
 
+    def window_count(self, end: int) -> int:
+        """The samples in the window ending at tick ``end`` so far."""
+        entry = self._sums.get(end)
+        return 0 if entry is None else entry[1]
+
     def extend_summed(self, ticks: list[int], opened: dict[int, np.ndarray]) -> None:
         """Count the samples at ``ticks`` (increasing) that were already added into their windows'
         sums (by the compiled loop); ``opened`` maps the end of each window that one of them opened

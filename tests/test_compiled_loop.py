@@ -21,6 +21,7 @@ from conformance_fmus import build_all
 from orchestration.master import Simulation
 from orchestration.recording import read_stream
 from orchestration.scene import SceneError, load_scene, scene_from_dict
+from orchestration.transitions import Average
 
 STATISTICS = ("peaks", "energy", "operator_warnings")
 
@@ -84,13 +85,17 @@ def test_the_compiled_loop_gives_the_python_paths_run_bit_for_bit(built, scene_n
 
 
 def test_the_default_scene_with_every_fmu_in_this_process(built, tmp_path):
-    """In process, the 30 Hz tissue steps in Python between the stretches (it reads the contact
-    forces through an average, which the compiled loop leaves to Python)."""
+    """In process, the 30 Hz tissue steps in the program too: it reads the contact forces through an
+    average, whose window the program sums and divides when the tissue steps. Its stretches then run
+    whole hyperperiods (100 ms) of all three FMUs, each the same program."""
     scene = load_scene("aaa_endovascular", {"duration": 0.5})
     (compiled, summary), _ = _same_run(scene, tmp_path, hosting="in-process")
     loop = compiled.algorithm.compiled_loop
-    assert {m.comp.name for m in loop.members.values()} == {"catheter", "contact"}
-    assert loop.steps >= 0.95 * (summary["components"]["catheter"]["steps"] + summary["components"]["contact"]["steps"])
+    assert {m.comp.name for m in loop.members.values()} == {"tissue", "catheter", "contact"}
+    assert loop.steps >= 0.95 * sum(c["steps"] for c in summary["components"].values())
+    period_steps = 3 + 100 + 100  # of the tissue, the catheter and the contact in 100 ms
+    assert loop.steps >= period_steps * loop.stretches >= period_steps, (loop.steps, loop.stretches)
+    assert len(loop._templates) <= 2  # the program of a stretch at the start of a hyperperiod, and the last one
 
 
 def _tube_scene(tmp_path: Path, insertion: list[float], times: list[float]) -> Path:
@@ -264,6 +269,10 @@ def test_random_multirate_scenes_run_compiled_as_in_python(conformance_fmus, tmp
         assert summary["wall_time_s"] >= float(duration) - min(steps) / 1000 - 1e-9
     loop = compiled.algorithm.compiled_loop
     event(f"compiled steps: {'none' if loop is None or not loop.steps else 'some'}{', paced' if paced else ''}")
+    if loop is not None and loop.steps:
+        averaged = any(isinstance(route.transition, Average) and route.producer.rank in loop.members
+                       for member in loop.members.values() for route in member.routes)
+        event(f"an average between two compiled FMUs: {'yes' if averaged else 'no'}")
 
 
 def test_programs_made_afresh_for_each_stretch_give_the_same_run(built, tmp_path, monkeypatch):
