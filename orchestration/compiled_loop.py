@@ -345,7 +345,7 @@ class CompiledLoop:
         if t_min < algorithm._cache_until:
             key = (t_min % algorithm._period, *[t - t_min for t in times], *running)
             cached = self._plans.get(key)
-            if cached is not None and t_min + cached[1] < algorithm._cache_until:
+            if cached is not None and t_min + cached[1] <= algorithm._cache_until:
                 return cached
         members = self.members
         steps: list[tuple[int, int]] = []

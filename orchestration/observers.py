@@ -118,6 +118,11 @@ class Recording:
         return self.recorder.files if self.recorder is not None else {}
 
 
+#: Blocks of steps at least this long (a compiled stretch's) are folded into the statistics in numpy;
+#: shorter ones (a paced tick's) a row at a time, which costs less for a few rows
+BLOCK_FOLD_ROWS = 8
+
+
 class Statistics:
     """Peaks, energies and operator warnings named in the scene's ``[summary]``."""
 
@@ -146,7 +151,11 @@ class Statistics:
     def stepped_block(self, comp, ticks: list[int], outputs: dict[str, np.ndarray], first_step: int) -> None:
         """``stepped`` for steps ending at ``ticks``; ``outputs[port]`` has a row per step."""
         for kind, port, ref in self.by_component[comp.name]:
-            self._take(kind, ref, comp.step, ticks, outputs[port].tolist())
+            rows = outputs[port]
+            if len(ticks) < BLOCK_FOLD_ROWS or not np.isfinite(rows).all():
+                self._take(kind, ref, comp.step, ticks, rows.tolist())
+            else:
+                self._take_block(kind, ref, comp.step, ticks, rows)
 
     def _take(self, kind: str, ref: str, step: int, ticks, rows) -> None:
         """Fold the values ``rows`` of ``ref`` at ``ticks`` (in time order) into its statistic."""
@@ -170,19 +179,70 @@ class Statistics:
                 if v > e["max"]:
                     e["max"] = v
         else:
-            h = seconds(step)
-            w = self.warnings.get(ref)
-            if w is None:
-                w = self.warnings[ref] = {"count": 0, "time_on_s": 0.0, "first_s": None, "_on": False}
+            w = self._warning(ref, step)
             for tick, values in zip(ticks, rows):
                 on = values[0] != 0
                 if on and not w["_on"]:
                     w["count"] += 1
                     if w["first_s"] is None:
                         w["first_s"] = seconds(tick)
-                if on:
-                    w["time_on_s"] += h if tick else 0.0
+                if on and tick:  # the step that ended at tick (none ends at 0) was spent warning
+                    w["_on_steps"] += 1
                 w["_on"] = on
+
+    def _take_block(self, kind: str, ref: str, step: int, ticks: list[int], rows: np.ndarray) -> None:
+        """``_take`` of finite ``rows`` (an array, a row per tick), the same numbers in numpy: the
+        extremes and edges are picked, not computed, and a vector's magnitude is still
+        ``math.hypot``, only for the rows that may raise the peak."""
+        seconds = self.seconds
+        size = rows.shape[1]
+        if kind == "peaks":
+            peak, at = self.peaks[ref]
+            if size == 1:
+                magnitudes = np.abs(rows[:, 0])
+                i = int(np.argmax(magnitudes))  # the first of the largest, as the strict > keeps it
+                if magnitudes[i] > peak:
+                    peak, at = float(magnitudes[i]), seconds(ticks[i])
+            else:
+                # |v| <= sqrt(n) max |v_k|: a row below the peak by this bound cannot raise it
+                bound = np.abs(rows).max(axis=1) * (math.sqrt(size) * (1.0 + 1e-12))
+                for i in np.flatnonzero(bound > peak).tolist():
+                    magnitude = math.hypot(*rows[i].tolist())
+                    if magnitude > peak:
+                        peak, at = magnitude, seconds(ticks[i])
+            self.peaks[ref] = (peak, at)
+        elif kind == "energy":
+            if size > 1:
+                self._take(kind, ref, step, ticks, rows.tolist())
+                return
+            values = rows[:, 0]
+            e = self.energy.get(ref)
+            if e is None:
+                first = float(values[0])
+                e = self.energy[ref] = {"initial": first, "final": first, "min": first, "max": first}
+            e["final"] = float(values[-1])
+            e["min"] = min(e["min"], float(values.min()))
+            e["max"] = max(e["max"], float(values.max()))
+        else:
+            w = self._warning(ref, step)
+            on = rows[:, 0] != 0
+            before = np.empty_like(on)
+            before[0] = w["_on"]
+            before[1:] = on[:-1]
+            rising = np.flatnonzero(on & ~before)
+            if rising.size:
+                w["count"] += int(rising.size)
+                if w["first_s"] is None:
+                    w["first_s"] = seconds(ticks[int(rising[0])])
+            w["_on_steps"] += int(np.count_nonzero(on & (np.asarray(ticks) != 0)))
+            w["_on"] = bool(on[-1])
+
+    def _warning(self, ref: str, step: int) -> dict:
+        w = self.warnings.get(ref)
+        if w is None:
+            w = self.warnings[ref] = {"count": 0, "first_s": None, "_on": False, "_on_steps": 0,
+                                      "_step_s": self.seconds(step)}
+        return w
 
     def report(self) -> dict:
         out: dict = {}
@@ -191,7 +251,8 @@ class Statistics:
         if self.energy:
             out["energy"] = {ref: {**e, "drift": e["final"] - e["initial"]} for ref, e in self.energy.items()}
         if self.warnings:
-            out["operator_warnings"] = {ref: {k: v for k, v in w.items() if not k.startswith("_")}
+            out["operator_warnings"] = {ref: {"count": w["count"], "time_on_s": w["_on_steps"] * w["_step_s"],
+                                              "first_s": w["first_s"]}
                                         for ref, w in self.warnings.items()}
         return out
 
