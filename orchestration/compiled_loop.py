@@ -37,6 +37,7 @@ import array
 import ctypes
 import logging
 import time
+from bisect import bisect_right
 from ctypes import c_bool, c_double, c_int64, c_void_p
 
 import numpy as np
@@ -397,7 +398,8 @@ class CompiledLoop:
         template = _Template()
         ops = template.ops
         rows: dict[int, int] = {}
-        produced: dict[int, list[tuple[int, int]]] = {rank: [] for rank, _ in steps}  # (sample tick, row address)
+        # each member's samples in this stretch so far: their ticks (increasing) and tape row addresses
+        produced: dict[int, tuple[list[int], list[int]]] = {rank: ([], []) for rank, _ in steps}
         counts: dict[int, int] = {}
         for rank, _ in steps:
             counts[rank] = counts.get(rank, 0) + 1
@@ -429,8 +431,9 @@ class CompiledLoop:
                     if route not in staging:
                         staging[route] = (np.empty((counts[rank], member.last_values[route].size)), [])
                     values, items = staging[route]
+                    row_bytes = 8 * values.shape[1]
+                    ops.extend((OP_SET, index, _address(values) + row_bytes * len(items), NO_KEY))
                     items.append((len(items), tau))
-                    ops.extend((OP_SET, index, _address(values[len(items) - 1]), NO_KEY))
                     continue
                 producer = route.producer.rank
                 size = member.last_values[route].size
@@ -442,10 +445,11 @@ class CompiledLoop:
                     continue
                 if producer in produced and isinstance(route.transition, tr.Hold):
                     # a hold of a sample made in this stretch, if there is one by tau
-                    sample = next(((t, address) for t, address in reversed(produced[producer]) if t <= tau), None)
-                    if sample is not None:
+                    sample_ticks, addresses = produced[producer]
+                    latest = bisect_right(sample_ticks, tau) - 1
+                    if latest >= 0:
                         offset = members[producer].tape_offsets[route.spec.source_port]
-                        ops.extend((OP_SET, index, sample[1] + 8 * offset, sample[0]))
+                        ops.extend((OP_SET, index, addresses[latest] + 8 * offset, sample_ticks[latest]))
                         continue
                 # a sample from before the stretch (its producer's history does not change in it)
                 patch = patches.setdefault(route, ([], [], size))
@@ -460,7 +464,8 @@ class CompiledLoop:
             row_address = member.tape_address + 8 * member.tape.shape[1] * row
             for offset, address, size in member.copies:
                 ops.extend((OP_COPY, row_address + 8 * offset, address, size))
-            produced[rank].append((sample_tick, row_address))
+            produced[rank][0].append(sample_tick)
+            produced[rank][1].append(row_address)
             slots = []
             for address, size, history in member.windows:
                 end = -(-(t0 + sample_tick) // history.window) * history.window - t0  # from the stretch's start
