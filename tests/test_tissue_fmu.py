@@ -85,6 +85,42 @@ def test_array_input_round_trip_and_outputs_match_model(tissue_fmu):
     assert energy > 0
 
 
+@pytest.mark.parametrize("slots", [[0, 1, 2], [1, 4, 5]], ids=["first slots", "scattered slots"])
+def test_the_compliance_output_is_the_models_w_at_the_named_slots(tissue_fmu, slots):
+    """After a step, W of the nodes named in patch_nodes (-1 elsewhere) is the model's compliance of
+    those nodes (symmetrised), its rows and columns at their slots, zero elsewhere; compliance_nodes
+    repeats patch_nodes. As Contact names them (the first slots) and anywhere else."""
+    mesh = aaa_mesh()
+    surface_nodes, _ = mesh.surface()
+    n = len(surface_nodes)
+    points = mesh.points[surface_nodes]
+    ids = np.flatnonzero(np.abs(points[:, 2] - 0.065) < 0.01)[:3]  # three nodes of the sac
+    force = np.zeros((n, 3))
+    force[ids] = [0.05, 0.0, 0.0]
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.initialize()
+        slots_total = fmu.size("patch_nodes")
+        patch = np.full(slots_total, -1)
+        patch[slots] = ids
+        fmu.set("contact_force", force.ravel())
+        fmu.set("patch_nodes", patch)
+        fmu.slave.doStep(0.0, STEP)
+        w = fmu.get("compliance").reshape(3 * slots_total, 3 * slots_total)
+        nodes = fmu.get("compliance_nodes")
+        tolerance = float(fmu.get("compliance_tolerance"))
+        assert fmu.errors() == []
+    model = TissueModel(mesh, TissueParameters())
+    model.set_contact_force(force)
+    model.step(0.0, STEP)
+    block = model.compliance(ids, STEP, tolerance=tolerance)
+    expected = np.zeros_like(w)
+    dofs = (3 * np.array(slots)[:, None] + np.arange(3)).ravel()
+    expected[np.ix_(dofs, dofs)] = 0.5 * (block + block.T)
+    np.testing.assert_array_equal(nodes, patch)
+    np.testing.assert_allclose(w, expected, rtol=0, atol=1e-12 * np.abs(block).max())
+    assert np.abs(block).max() > 0
+
+
 @pytest.mark.parametrize(
     "name, value, words",
     [

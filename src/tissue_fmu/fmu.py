@@ -231,8 +231,11 @@ class TissueFmu:
         w = v.compliance.reshape(nodes.size * 3, nodes.size * 3)  # the FMU's buffer
         w[...] = 0.0
         if block is not None:
-            dofs = (3 * valid[:, None] + np.arange(3)).ravel()
-            w[np.ix_(dofs, dofs)] = block
+            if valid[-1] == valid.size - 1:  # the first slots, as Contact names them: a block in the corner
+                w[:block.shape[0], :block.shape[0]] = block
+            else:
+                dofs = (3 * valid[:, None] + np.arange(3)).ravel()
+                w[np.ix_(dofs, dofs)] = block
         v.compliance_nodes = nodes
 
     def _publish(self) -> None:
