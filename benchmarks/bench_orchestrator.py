@@ -5,7 +5,9 @@
    force and stiffness one step late) stepped by a plain Python loop, against the orchestrated
    in-process run of ``aaa_endovascular`` (FMI calls through the FMUs, the master's transitions,
    recording). Both compute the same run (the peak haptic force is printed for both).
-   Overhead = (orchestrated - direct) / orchestrated; target <= 10 % of the total wall time.
+   Overhead = (orchestrated - direct) / orchestrated; target <= 10 % of the total wall time. The
+   pair is run three times, alternating, and the median taken: one pair moves by 5 points on this
+   host (the three are printed).
 2. Hosting: the scene all in-process, every FMU in a worker process of its own, and the scene's
    own choice (the 30 Hz tissue in a worker, stepping concurrently with the 1 kHz loop in this
    process); real-time factors and ratios. Targets: the scene's hosting at least as fast as the
@@ -25,6 +27,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+#: Direct and in-process runs alternate this many times; the overhead is the median pair's
+OVERHEAD_PAIRS = 3
 
 
 def direct_loop(duration: float) -> float:
@@ -138,15 +143,20 @@ def main() -> None:
 
     ensure_fmus_built(quiet=True)
     orchestrated(0.1, "in-process")  # the FMU extraction path, imports
-    direct, direct_peak = direct_loop(args.duration)
-    inproc = orchestrated(args.duration, "in-process")
+    direct_loop(0.1)  # its own kernels loaded from the numba cache: not in the first pair's time
+    pairs = []
+    for _ in range(OVERHEAD_PAIRS):
+        direct_wall, direct_peak = direct_loop(args.duration)
+        run = orchestrated(args.duration, "in-process")
+        pairs.append(((run["wall_time_s"] - direct_wall) / run["wall_time_s"], direct_wall, run))
+    overhead, direct, inproc = sorted(pairs, key=lambda pair: pair[0])[len(pairs) // 2]
     outproc = orchestrated(args.duration, "out-of-process")
     mixed = orchestrated(args.duration, None)
     inproc_python = orchestrated(args.duration, "in-process", compiled_loop=False)
     mixed_python = orchestrated(args.duration, None, compiled_loop=False)
-    overhead = (inproc["wall_time_s"] - direct) / inproc["wall_time_s"]
     peak = inproc["peaks"]["contact.tool_force"]["value"]
-    same = all(run["peaks"] == inproc["peaks"] for run in (outproc, mixed, inproc_python, mixed_python))
+    same = all(run["peaks"] == inproc["peaks"]
+               for run in (*(pair[2] for pair in pairs), outproc, mixed, inproc_python, mixed_python))
     print(f"default scene, {args.duration:g} s simulated (peak haptic force: direct {direct_peak:.6g} N, "
           f"orchestrated {peak:.6g} N: {'the same run' if direct_peak == peak else 'DIFFERENT RUNS'})")
     print(f"  direct model loop (no FMI, no master)   wall {direct:7.2f} s   real-time factor {args.duration / direct:5.2f}")
@@ -156,7 +166,9 @@ def main() -> None:
           f"{outproc['real_time_factor']:5.2f}")
     print(f"  orchestrated, the scene's hosting       wall {mixed['wall_time_s']:7.2f} s   real-time factor "
           f"{mixed['real_time_factor']:5.2f}   [{mixed['hosting']}] (target >= 5)")
-    print(f"  orchestration overhead (FMI + master) = {100 * overhead:5.1f} % of the in-process wall time (target <= 10 %)")
+    print(f"  orchestration overhead (FMI + master) = {100 * overhead:5.1f} % of the in-process wall time (target <= 10 %; "
+          f"the median of {', '.join(f'{100 * pair[0]:.1f}' for pair in pairs)} %, direct and in-process "
+          f"alternating; the walls above are its pair's)")
     # In process, a component is "busy" while the master is inside one of its calls (set inputs,
     # fmi3DoStep, get outputs; timed in C within a compiled stretch): the rest of the wall time is
     # the master's own work. The direct loop is the models plus its own Python around them, so
