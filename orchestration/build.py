@@ -90,9 +90,10 @@ def find_compiler() -> str | None:
 
 
 def _shared_library(name: str, what: str, sources: list[Path], arguments, build_dir: Path) -> Path:
-    """``build_dir/<name>-<digest of sources>/<name>.so``, compiled once per version of the sources
-    with the compiler's ``arguments(output)``; ``what`` names it in errors."""
-    work = Path(build_dir) / f"{name}-{_digest(sources)[:16]}"
+    """``build_dir/<name>-<digest of sources and flags>/<name>.so``, compiled once per version of the
+    sources and of the compiler's ``arguments(output)``; ``what`` names it in errors."""
+    flags = " ".join(arguments(Path(name))).encode()
+    work = Path(build_dir) / f"{name}-{hashlib.sha256(_digest(sources).encode() + flags).hexdigest()[:16]}"
     library = work / f"{name}.so"
     if library.exists():
         return library
@@ -127,7 +128,9 @@ COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"
 def compiled_loop_library(build_dir: Path = BUILD_DIR) -> Path:
     """Compile (once per source version) the master's compiled loop (orchestration/compiled_loop.c)."""
     return _shared_library("compiled_loop", "the master's compiled loop", [COMPILED_LOOP_SOURCE], lambda output: [
-        "-std=gnu11", "-O2", "-g", "-Wall", "-Wextra", "-fPIC", "-shared", str(COMPILED_LOOP_SOURCE),
+        # -O3 vectorises the window sums (elementwise: the same sums): 3.4 ms against 10.1 ms at -O2
+        # for the default scene's 4000 contact-force samples of 8064 values
+        "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-fPIC", "-shared", str(COMPILED_LOOP_SOURCE),
         "-o", str(output)], build_dir)
 
 
