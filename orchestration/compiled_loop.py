@@ -672,15 +672,14 @@ class CompiledLoop:
                 self.pacer.paced_block(comp, template.lateness[late])
             window_index = 0
             for name, histories in comp.histories.items():
-                kept = None  # one copy of the samples for the histories that keep them
                 for history in histories:
                     if history.keeps_values:
-                        if kept is None:
-                            offset = member.tape_offsets[name]
-                            kept = rows[:, offset:offset + comp.outputs[name].size].copy()
-                        # pruned as it goes: the samples its consumer can no longer ask for are not kept
+                        offset = member.tape_offsets[name]
+                        # pruned as it goes: the samples its consumer can no longer ask for are not
+                        # kept, nor copied from the tape
                         consumer = member.consumer_of[id(history)]
-                        history.extend(ticks, kept, consumer.time - 2 * comp.step - consumer.step)
+                        history.extend(ticks, rows[:, offset:offset + comp.outputs[name].size],
+                                       consumer.time - 2 * comp.step - consumer.step, copy=True)
                     else:
                         sums = {t0 + template.windows[slot][1]: opened[slot]
                                 for slot in window_slots[window_index] if slot in opened}

@@ -52,9 +52,10 @@ class SampleHistory:
         self.values.append(value)
         self.count += 1
 
-    def extend(self, ticks: list[int], values, keep_from: int | None = None) -> None:
+    def extend(self, ticks: list[int], values, keep_from: int | None = None, copy: bool = False) -> None:
         """``append`` each of ``ticks`` (increasing) with its value, at once; then ``prune(keep_from)``
-        when given, without keeping the samples that it would drop."""
+        when given, without keeping the samples that it would drop. ``copy``: ``values`` is an array
+        that changes later (the compiled loop's tape): copy the rows kept, only those."""
         if not ticks:
             return
         _check_order(self.ticks, ticks[0])
@@ -71,7 +72,7 @@ class SampleHistory:
             else:
                 self._drop(drop)
         self.ticks.extend(ticks[new:])
-        self.values.extend(values[new:])
+        self.values.extend(values[new:].copy() if copy else values[new:])
 
     def prune(self, keep_from: int) -> None:
         """Drop samples older than ``keep_from``, always keeping the latest two."""

@@ -234,6 +234,8 @@ def test_extend_with_a_prune_keeps_what_extend_then_prune_keeps():
             h.extend(ticks[:split], values[:split])
         one.extend(ticks[split:], values[split:])
         one.prune(keep_from)
-        many.extend(ticks[split:], values[split:], keep_from)
+        tape = values.copy()  # as the compiled loop's tape: overwritten after the call
+        many.extend(ticks[split:], tape[split:], keep_from, copy=True)
+        tape[:] = -1.0
         assert list(many.ticks) == list(one.ticks) == naive_prune(ticks, keep_from)
         assert [v[0] for v in many.values] == [float(t) for t in many.ticks] and many.count == one.count
