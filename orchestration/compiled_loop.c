@@ -99,6 +99,7 @@ double pacing_clock(void) {
 /* Real-time pacing of a stretch (see observers.RealtimePacing). */
 typedef struct {
     double origin;     /* pacing_clock() at simulated time 0 */
+    int64_t started;   /* 0 until the run's first paced step starts: it sets the origin */
     int64_t pace;      /* 0: only measure how late steps end */
     int64_t sleep;     /* sleep until `spin` seconds before a due time (else spin all the way) */
     double spin;
@@ -178,7 +179,7 @@ static int from_float64(const Port *p) {
 
 /* ops: n_ops rows of 4 int64 (opcode, a, b, c); ticks in ops count from `t0`, `base` ticks a second. */
 Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, Component *components, Port *ports,
-                   Window *windows, const Pacing *pacing) {
+                   Window *windows, Pacing *pacing) {
     Result result = {0, DONE, 0};
     for (int64_t k = 0; k < n_ops; k++) {
         const int64_t *op = ops + 4 * k;
@@ -262,8 +263,14 @@ Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, 
                 for (int64_t i = 0; i < w->size; i++) mean[i] = w->sum[i] / n;
                 break;
             }
-            case OP_PACE: /* a paced step from tick t0 + op[1] starts no earlier than its time */
-                if (pacing->pace) wait_until(pacing->origin + (double)(t0 + op[1]) / (double)base, pacing);
+            case OP_PACE: /* a paced step from tick t0 + op[1] starts no earlier than its time; the run's
+                           * first starts the clock (what the program made before it is not it being late) */
+                if (!pacing->started) {
+                    pacing->origin = pacing_clock() - (double)(t0 + op[1]) / (double)base;
+                    pacing->started = 1;
+                } else if (pacing->pace) {
+                    wait_until(pacing->origin + (double)(t0 + op[1]) / (double)base, pacing);
+                }
                 break;
             case OP_LATE: /* ... and ends by t0 + op[2]: how late it is, into its slot op[1] */
                 pacing->lateness[op[1]] = (pacing_clock() - pacing->origin) - (double)(t0 + op[2]) / (double)base;

@@ -94,7 +94,7 @@ class _Window(ctypes.Structure):
 
 
 class _Pacing(ctypes.Structure):
-    _fields_ = [("origin", c_double), ("pace", c_int64), ("sleep", c_int64), ("spin", c_double),
+    _fields_ = [("origin", c_double), ("started", c_int64), ("pace", c_int64), ("sleep", c_int64), ("spin", c_double),
                 ("lateness", c_void_p)]
 
 
@@ -195,7 +195,7 @@ class CompiledLoop:
                   if _is_pacer(observer := getattr(hook, "__self__", None))}
         #: the real-time pacing, which the program does for the steps it paces (one at most)
         self.pacer = next(iter(pacers.values())) if len(pacers) == 1 else None
-        self._pacing = _Pacing(0.0, 0, 0, SPIN_S, None)
+        self._pacing = _Pacing(0.0, 0, 0, 0, SPIN_S, None)
         self._records = (_Component * len(comps))()
         self._ports: list[_Port] = []
         self._port_objects: list = []   # the binding's records, for error messages (call names)
@@ -595,15 +595,19 @@ class CompiledLoop:
         pacing = self._pacing
         if template.first_paced is not None:
             pacer = self.pacer
-            # the pacing's origin, from its clock (time.perf_counter) to the program's
-            origin = pacer.clock_origin(t0 + template.first_paced)
-            pacing.origin = origin + (self._run_program.clock() - time.perf_counter())
+            # the pacing's origin, from its clock (time.perf_counter) to the program's; before the run's
+            # first paced step the program sets it there, as the pacing would (other steps may come first)
+            to_program = self._run_program.clock() - time.perf_counter()
+            pacing.started = pacer.origin is not None
+            pacing.origin = pacer.origin + to_program if pacing.started else 0.0
             pacing.pace, pacing.sleep = pacer.pace, pacer.sleeps
             pacing.lateness = _address(template.lateness)
         ops = template.ops
         result = self._run_program(ops.buffer_info()[0], len(ops) // 4, t0, algorithm.base,
                                    ctypes.addressof(records), ctypes.addressof(ports), ctypes.addressof(windows),
                                    ctypes.addressof(pacing))
+        if template.first_paced is not None and pacing.started and self.pacer.origin is None:
+            self.pacer.origin = pacing.origin - to_program
         stopped_at = result.ops_done
         made = 0
         for step in template.steps:
@@ -745,7 +749,7 @@ class CompiledLoop:
 
 def _is_pacer(observer) -> bool:
     """Whether ``observer`` paces steps in real time in a way the program can do itself
-    (:class:`.observers.RealtimePacing`: ``paced``, ``clock_origin``, ``pace``, ``sleeps``,
+    (:class:`.observers.RealtimePacing`: ``paced``, ``origin``, ``pace``, ``sleeps``,
     ``paced_block``)."""
     return hasattr(observer, "paced_block")
 

@@ -284,15 +284,16 @@ class RealtimePacing:
     query is one too): it now ends about on time (at the median, 0.12 ms early to 0.04 ms late).
 
     Inside a compiled stretch (``compiled_loop.c``) the program paces and measures the steps the
-    same way (``paced``, ``clock_origin``, ``sleeps``) and hands their lateness over afterwards
-    (``paced_block``).
+    same way (``paced``, ``origin``, ``sleeps``; it sets ``origin`` at the run's first paced step
+    when that step is its own) and hands their lateness over afterwards (``paced_block``).
     """
 
     def __init__(self, pace: bool = True):
         self.pace = pace
         self.lateness: list[float] = []
         self._fastest = None
-        self._start: float | None = None
+        #: time.perf_counter() at simulated time 0: set when the run's first paced step starts
+        self.origin: float | None = None
         self.cpus: dict[str, int] = {}
         self._own_cpus = None
 
@@ -325,7 +326,7 @@ class RealtimePacing:
             logger.debug("realtime: placing processes on CPUs failed: %s", exc)
 
     def started(self, algorithm) -> None:
-        self._start = None  # set by the first paced step (before_step)
+        self.origin = None
 
     def finished(self, algorithm) -> None:
         if self._own_cpus is not None:
@@ -346,11 +347,11 @@ class RealtimePacing:
 
     def clock_origin(self, tick: int) -> float:
         """``time.perf_counter()`` at simulated time 0, set by the first paced step (from ``tick``)."""
-        if self._start is None:
+        if self.origin is None:
             # The loop's clock starts at its first step: what the observers do when the run
             # starts (the progress bar's import of tqdm: 6-7 ms) is not the loop being late.
-            self._start = time.perf_counter() - self.seconds(tick)
-        return self._start
+            self.origin = time.perf_counter() - self.seconds(tick)
+        return self.origin
 
     def before_step(self, comp, tick: int) -> None:
         if comp.step != self._fastest:
@@ -365,7 +366,7 @@ class RealtimePacing:
 
     def stepped(self, comp, tick: int, outputs) -> None:
         if tick and comp.step == self._fastest:
-            self.lateness.append((time.perf_counter() - self._start) - self.seconds(tick))
+            self.lateness.append((time.perf_counter() - self.origin) - self.seconds(tick))
 
     def paced_block(self, comp, lateness: np.ndarray) -> None:
         """How late each of ``comp``'s paced steps ended, a compiled stretch's in time order (the

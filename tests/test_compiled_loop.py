@@ -146,6 +146,20 @@ def test_a_paced_run_is_paced_and_measured_by_the_compiled_loop(built, tmp_path)
     assert summary["wall_time_s"] >= 0.3 - 0.001
 
 
+def test_a_paced_runs_clock_starts_at_its_first_paced_step_inside_a_program(built, tmp_path):
+    """With every FMU in process, the tissue's first step (its factorisations: most of its time in a
+    short run) comes before the first haptic step in the same program. The clock starts at that
+    haptic step, as the Python path starts it, so the first haptic steps are not late by the
+    tissue's first step."""
+    scene = load_scene("aaa_endovascular", {"duration": 0.1})
+    simulation, summary = _run(scene, tmp_path, True, realtime=True, hosting="in-process")
+    assert summary["status"] == "completed"
+    assert "tissue" in {m.comp.name for m in simulation.algorithm.compiled_loop.members.values()}
+    pacer = next(o for o in simulation.algorithm.observers if hasattr(o, "paced_block"))
+    tissue_busy = summary["components"]["tissue"]["busy_wall_s"]
+    assert pacer.lateness[0] < 0.3 * tissue_busy, (pacer.lateness[:3], tissue_busy)
+
+
 @pytest.fixture(scope="module")
 def conformance_fmus(tmp_path_factory) -> dict[str, Path]:
     return build_all(tmp_path_factory.mktemp("conformance_fmus"))
