@@ -253,16 +253,23 @@ def test_inactive_elements_contribute_nothing():
 
 
 # ---------------------------------------------------------------- non-linear laws vs references
+def _strained_etmm(seed: int, subset: bool, fraction: float):
+    """A jittered mesh, an ETMM force field (threshold 0.05; a random ``fraction`` of the tets
+    candidates when ``subset``, else all) and a displacement with some tets over the threshold."""
+    pts, tets, _ = _mesh(div=(3, 3, 2), jitter=0.2)
+    rng = np.random.default_rng(seed)
+    u = 0.006 * rng.normal(size=pts.shape) + 0.03 * pts * np.array([1.0, -0.3, 0.2])
+    nonlinear = rng.random(tets.shape[0]) < fraction if subset else None
+    ff = TensorMassForceField(pts, tets, E_RV, 0.45, law="etmm", nonlinear_strain_threshold=0.05,
+                              nonlinear_elements=nonlinear)
+    return pts, tets, u, nonlinear, ff
+
+
 @pytest.mark.parametrize("subset", [False, True])
 def test_etmm_kernel_equals_numpy_reference(subset):
     """Both code paths: all tets candidates (edge pre-screen fused in the linear pass) and a
     candidate subset (direct check).  The screen must never miss an element over the threshold."""
-    pts, tets, _ = _mesh(div=(3, 3, 2), jitter=0.2)
-    rng = np.random.default_rng(6)
-    u = 0.006 * rng.normal(size=pts.shape) + 0.03 * pts * np.array([1.0, -0.3, 0.2])
-    nonlinear = rng.random(tets.shape[0]) < 0.2 if subset else None
-    ff = TensorMassForceField(pts, tets, E_RV, 0.45, law="etmm", nonlinear_strain_threshold=0.05,
-                              nonlinear_elements=nonlinear)
+    pts, tets, u, nonlinear, ff = _strained_etmm(6, subset, 0.2)
     f = _force(ff, u)
     sel = tets if nonlinear is None else tets[nonlinear]
     f_ref = _reference_etmm_force(pts, sel, E_RV, 0.45, u, 0.05, BETA / ALPHA)
@@ -326,12 +333,7 @@ def test_etmm_strain_energy_is_half_u_secant_stiffness_u(subset):
     1/2 u.K_sec(u) u with K_sec the secant tangent that add_forces leaves at u (assembled by columns),
     with all tets candidates and with a subset; and 1/2 u.K u from the numpy FEM reference when no
     element is over the threshold."""
-    pts, tets, _ = _mesh(div=(3, 3, 2), jitter=0.2)
-    rng = np.random.default_rng(16)
-    u = 0.006 * rng.normal(size=pts.shape) + 0.03 * pts * np.array([1.0, -0.3, 0.2])
-    nonlinear = rng.random(tets.shape[0]) < 0.3 if subset else None
-    ff = TensorMassForceField(pts, tets, E_RV, 0.45, law="etmm", nonlinear_strain_threshold=0.05,
-                              nonlinear_elements=nonlinear)
+    pts, tets, u, _, ff = _strained_etmm(16, subset, 0.3)
     _force(ff, u)
     assert ff.nonlinear_fraction > 0.05  # the correction takes part
     secant = _dense(ff.tangent_matvec, pts.shape[0])
