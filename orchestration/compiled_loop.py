@@ -420,26 +420,27 @@ class CompiledLoop:
             for route in member.routes:
                 tau = tick + route.need_offset
                 index = member.port_index[route]
+                size = member.last_values[route].size
                 if route.source is not None and route.source.constant:
                     # the Python path sets a constant source's value once in a run: here its first time
                     if route not in staging:
-                        staging[route] = (np.empty((1, member.last_values[route].size)), [(0, tau)])
+                        staging[route] = (np.empty((1, size)), [(0, tau)])
                         template.constants.append((len(ops) // 4, route))
                         ops.extend((OP_SET, index, _address(staging[route][0]), NO_KEY))
                     continue
                 if route.source is not None:  # its value at tau, written into a row of its staging array
                     if route not in staging:
-                        staging[route] = (np.empty((counts[rank], member.last_values[route].size)), [])
+                        staging[route] = (np.empty((counts[rank], size)), [])
                     values, items = staging[route]
-                    row_bytes = 8 * values.shape[1]
-                    ops.extend((OP_SET, index, _address(values) + row_bytes * len(items), NO_KEY))
+                    ops.extend((OP_SET, index, _address(values) + 8 * size * len(items), NO_KEY))
                     items.append((len(items), tau))
                     continue
                 producer = route.producer.rank
-                size = member.last_values[route].size
                 slot = windows.get((route.history, tau, size)) if isinstance(route.transition, tr.Average) else None
                 if slot is not None:  # an average over a window the stretch adds to: its mean, made when read
-                    mean = means.setdefault(route, np.empty(size))
+                    if route not in means:
+                        means[route] = np.empty(size)
+                    mean = means[route]
                     ops.extend((OP_MEAN, slot, _address(mean), added[slot]))
                     ops.extend((OP_SET, index, _address(mean), NO_KEY))
                     continue
@@ -655,7 +656,6 @@ class CompiledLoop:
     def _replay(self, template: _Template, t0: int, made: int, opened: dict) -> None:
         """What the Python path does after each of the first ``made`` steps (``_finish``, ``_store``),
         from the tapes: step counts, histories, observers."""
-        comps = self.algorithm.ordered
         base = self.algorithm.base
         data = template.replay if made == len(template.steps) else self._replay_data(template.steps[:made])
         blocks = []
@@ -688,6 +688,8 @@ class CompiledLoop:
                         sums = {t0 + template.windows[slot][1]: opened[slot]
                                 for slot in window_slots[window_index] if slot in opened}
                         history.extend_summed(ticks, sums)
+                        consumer = member.consumer_of[id(history)]
+                        history.prune(consumer.time - 2 * comp.step - consumer.step)
                         window_index += 1
             if member.listeners:
                 columns = {name: rows[:, offset:offset + size] for name, offset, size in member.listener_ports}
@@ -701,10 +703,6 @@ class CompiledLoop:
                         comp.steps = first_step + i + 1
                         listener(comp, tick, {name: values[i] for name, values in columns.items()})
                     comp.steps = steps_after
-        for rank in data:
-            comp = comps[rank]
-            for consumer, route in comp.consumers:
-                route.history.prune(consumer.time - 2 * comp.step - consumer.step)
 
     def _stopped(self, rank: int, tick: int, op, result, mark: int, clock) -> None:
         """The program stopped inside the step of ``rank`` at ``tick``: report or finish it as Python would."""
