@@ -9,6 +9,7 @@ modelDescription.xml                     generated from the declaration
 binaries/x86_64-linux/<id>.so            the FMI layer (links to no libpython; see python_embed.h)
 resources/fmi3_runtime.py                the layer's Python side
 resources/numba_cache.py                 content-keyed numba cache (loads do not recompile)
+resources/state_format.py                the serialized FMU state (data only, checked before use)
 resources/fmu.json                       package, declaration, token, the build's Python environment
 resources/libpython.txt                  the libpython a non-Python importer loads
 resources/<package>/                     the model's package (its own copy, imported under a unique name)
@@ -45,7 +46,7 @@ DEFAULT_FMU_DIR = REPO_ROOT / "fmus"
 BUILD_DIR = REPO_ROOT / "build"
 PLATFORM = "x86_64-linux"
 LAYER_SOURCES = ("fmi3Functions.c", "python_embed.c", "python_embed.h")
-RUNTIME_FILES = ("fmi3_runtime.py", "numba_cache.py")
+RUNTIME_FILES = ("fmi3_runtime.py", "numba_cache.py", "state_format.py")
 
 
 class BuildError(RuntimeError):
@@ -119,7 +120,10 @@ def layer_library(build_dir: Path = BUILD_DIR) -> Path:
     return _shared_library("fmi3_layer", "the FMUs' FMI layer", sources, lambda output: [
         "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fPIC", "-shared",
         "-fvisibility=hidden", f"-I{LAYER / 'include'}", str(LAYER / "fmi3Functions.c"), str(LAYER / "python_embed.c"),
-        "-o", str(output), "-ldl", "-lpthread", "-lm"], build_dir)
+        # -z nodelete: the embedded interpreter keeps pointers into the library (its callbacks) for the
+        # life of the process, so an importer's dlclose must not unmap it (a second instantiation
+        # through the same handle, e.g. FMPy after freeInstance, would jump into unmapped code)
+        "-Wl,-z,nodelete", "-o", str(output), "-ldl", "-lpthread", "-lm"], build_dir)
 
 
 COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"

@@ -203,6 +203,9 @@ class FmuDeclaration:
     extra_units: tuple[str, ...] = field(default=())
     #: the FMU's limit table: variable name -> its plausible range (one place for each limit)
     limits: dict[str, Limit] = field(default_factory=dict)
+    #: the most internal steps one fmi3DoStep may run: a C importer cannot interrupt a call, so
+    #: one that would take minutes is refused (with this number) instead of started
+    max_steps_per_call: int = 100_000
 
     def __post_init__(self):
         names = {v.name for v in self.variables} | {"internal_step"}

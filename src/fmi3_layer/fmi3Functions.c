@@ -20,6 +20,8 @@
  */
 #define _GNU_SOURCE
 #include <dlfcn.h>
+#include <limits.h>
+#include <malloc.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdint.h>
@@ -121,6 +123,8 @@ typedef struct {
     uint64_t steps_done;  /* whole internal steps since start_time: time without rounding drift */
     int built;            /* the model exists for the current parameter values */
     int interrupted;      /* a KeyboardInterrupt ended a Python call of the current FMI call */
+    void **states;        /* the live FMU states this instance handed out (see "FMU state") */
+    size_t n_states, capacity_states;
     char last_error[4096];
 } Instance;
 
@@ -221,8 +225,9 @@ static int cb_counters(void *instance, void *data, uint64_t count) {
 
 /* The step exchange (a numpy array of STEP_IO_SIZE doubles owned by the runtime): fmi3DoStep writes
  * the arguments, status OK and all steps completed; the runtime's do_step writes a warning, or an
- * error and the internal steps it completed. A Python exception out of do_step is an error too. */
-enum { IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, STEP_IO_SIZE };
+ * error and the internal steps it completed. A Python exception out of do_step is an error too. The
+ * runtime also writes, once, the most internal steps one call may run (IO_MAX_SUBSTEPS). */
+enum { IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, IO_MAX_SUBSTEPS, STEP_IO_SIZE };
 
 static int cb_step_io(void *instance, void *data, uint64_t count) {
     Instance *inst = (Instance *)instance;
@@ -519,9 +524,12 @@ fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3Stri
     return NULL;
 }
 
+static void free_all_states(Instance *inst);
+
 void fmi3FreeInstance(fmi3Instance instance) {
     Instance *inst = (Instance *)instance;
     if (!inst) return;
+    free_all_states(inst); /* the importer's states die with the instance */
     if (inst->model) {
         PyObject *result = CALL_MODEL(inst, "fmi3FreeInstance", "free", NULL);
         release(result);
@@ -992,10 +1000,18 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
         return fmi3Error;
     }
     double substeps = isfinite(h) ? nearbyint(h / step) : 0.0;
-    if (!(h > 0.0) || substeps < 1.0 || fabs(substeps * step - h) > 1e-9 * h || substeps > 1e9) {
+    if (!(h > 0.0) || substeps < 1.0 || fabs(substeps * step - h) > 1e-9 * h) {
         log_message(inst, fmi3Error, "fmi3DoStep(t = %.15g, h = %.15g): the communication step must be a whole "
                     "multiple of the internal step %.15g s (fixedInternalStepSize, parameter internal_step)",
                     currentCommunicationPoint, h, step);
+        return fmi3Error;
+    }
+    /* a call cannot be interrupted by a C importer: one that would run for minutes is refused */
+    double most = inst->step_io[IO_MAX_SUBSTEPS];
+    if (substeps > most) {
+        log_message(inst, fmi3Error, "fmi3DoStep(t = %.15g, h = %.15g): that is %.15g internal steps of %.15g s; "
+                    "this FMU runs at most %.15g in one call (%.15g s): split the communication step into calls "
+                    "of at most that", currentCommunicationPoint, h, substeps, step, most, most * step);
         return fmi3Error;
     }
     /* The importer's own time and step go to the model, so that a step of one internal step
@@ -1057,21 +1073,105 @@ fmi3Status fmi3GetOutputDerivatives(fmi3Instance instance, const fmi3ValueRefere
 }
 
 /* ---- FMU state ------------------------------------------------------------------------------------------ */
+/* A saved state: the C layer's fields and the runtime's snapshot. Every state an instance hands out
+ * is in its registry until freed; a handle that is not there (freed, of another instance, or the
+ * state itself where a pointer to it is due, as fmusim v0.0.39 passes to fmi3FreeFMUState) is
+ * looked up before anything is dereferenced, so it is refused or understood, never followed. */
 typedef struct {
     int mode, built;
     uint64_t steps_done;
     double start_time, step_size;
-    PyObject *model_state;  /* the runtime's snapshot (values, strings, model) */
+    PyObject *model_state; /* the runtime's snapshot (values, strings, model) */
+    PyObject *serialized;  /* its bytes once asked for (fmi3SerializedFMUStateSize, then fmi3SerializeFMUState) */
 } SavedState;
 
-static const char STATE_MAGIC[8] = {'A', 'A', 'A', 'F', 'M', 'U', 'S', '1'};
-typedef struct {
-    char magic[8];
-    int32_t mode, built;
-    uint64_t steps_done;
-    double start_time, step_size;
-    uint64_t payload;
-} SerializedHeader;
+/* The modes a state can be saved in (ALLOWED_FMUState) are the ones a state may restore. */
+static int is_state_mode(int mode) {
+    return (mode & ALLOWED_FMUState) && (mode & (mode - 1)) == 0;
+}
+
+static int registered(const Instance *inst, const void *state) {
+    for (size_t i = 0; state && i < inst->n_states; i++)
+        if (inst->states[i] == state) return 1;
+    return 0;
+}
+
+static int register_state(Instance *inst, SavedState *saved) {
+    if (inst->n_states == inst->capacity_states) {
+        size_t capacity = inst->capacity_states ? 2 * inst->capacity_states : 8;
+        SavedState **grown = realloc(inst->states, capacity * sizeof *grown);
+        if (!grown) return 0;
+        inst->states = (void **)grown;
+        inst->capacity_states = capacity;
+    }
+    inst->states[inst->n_states++] = saved;
+    return 1;
+}
+
+/* Release a state's snapshot and bytes; the runtime empties the snapshot first (see discard). */
+static void drop_snapshot(Instance *inst, SavedState *saved) {
+    release(saved->serialized);
+    if (saved->model_state && inst->model)
+        release(CALL_MODEL(inst, "fmi3FreeFMUState", "discard", "(O)", saved->model_state));
+    release(saved->model_state);
+    saved->serialized = saved->model_state = NULL;
+}
+
+static void free_state(Instance *inst, SavedState *saved) {
+    for (size_t i = 0; i < inst->n_states; i++) {
+        if (inst->states[i] == saved) {
+            inst->states[i] = inst->states[--inst->n_states];
+            break;
+        }
+    }
+    drop_snapshot(inst, saved);
+    free(saved);
+    /* a state holds the model's arrays (tens of MB for the tissue): give the pages back to the
+     * system now, not when the allocator happens to trim */
+    malloc_trim(0);
+}
+
+static void free_all_states(Instance *inst) {
+    while (inst->n_states) free_state(inst, (SavedState *)inst->states[inst->n_states - 1]);
+    free(inst->states);
+    inst->states = NULL;
+    inst->capacity_states = 0;
+}
+
+/* The state a handle names, or NULL (logged) when it names none of this instance's live states. */
+static SavedState *live_state(Instance *inst, const char *function, fmi3FMUState state) {
+    if (registered(inst, state)) return (SavedState *)state;
+    log_message(inst, fmi3Error, "%s: FMUState %p is not a live state of instance '%s' (NULL, freed, or of "
+                "another instance): use a state this instance returned from fmi3GetFMUState or "
+                "fmi3DeserializeFMUState and has not freed", function, state, inst->instance_name);
+    return NULL;
+}
+
+/* Where fmi3GetFMUState or fmi3DeserializeFMUState put a state: into *FMUState when it is one of
+ * this instance's states (overwritten, as the standard allows), else a new one. */
+static SavedState *state_slot(Instance *inst, const char *function, fmi3FMUState *FMUState, int *fresh) {
+    *fresh = 0;
+    if (*FMUState) return live_state(inst, function, *FMUState);
+    SavedState *saved = calloc(1, sizeof(SavedState));
+    if (!saved || !register_state(inst, saved)) {
+        free(saved);
+        log_message(inst, fmi3Error, "%s: out of memory", function);
+        return NULL;
+    }
+    *fresh = 1;
+    return saved;
+}
+
+static void fill_state(Instance *inst, SavedState *saved, int mode, int built, uint64_t steps_done,
+                       double start_time, double step_size, PyObject *snapshot) {
+    drop_snapshot(inst, saved);
+    saved->mode = mode;
+    saved->built = built;
+    saved->steps_done = steps_done;
+    saved->start_time = start_time;
+    saved->step_size = step_size;
+    saved->model_state = snapshot;
+}
 
 fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
     Instance *inst = (Instance *)instance;
@@ -1080,21 +1180,15 @@ fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
         log_message(inst, fmi3Error, "fmi3GetFMUState: FMUState is NULL");
         return fmi3Error;
     }
+    int fresh;
+    SavedState *saved = state_slot(inst, "fmi3GetFMUState", FMUState, &fresh);
+    if (!saved) return fmi3Error;
     PyObject *snapshot = CALL_MODEL(inst, "fmi3GetFMUState", "get_state", NULL);
-    if (!snapshot) return fmi3Error;
-    SavedState *saved = *FMUState ? (SavedState *)*FMUState : calloc(1, sizeof(SavedState));
-    if (!saved) {
-        release(snapshot);
-        log_message(inst, fmi3Error, "fmi3GetFMUState: out of memory");
+    if (!snapshot) {
+        if (fresh) free_state(inst, saved);
         return fmi3Error;
     }
-    release(saved->model_state); /* an existing state is overwritten, as the standard allows */
-    saved->mode = inst->mode;
-    saved->built = inst->built;
-    saved->steps_done = inst->steps_done;
-    saved->start_time = inst->start_time;
-    saved->step_size = inst->step_size;
-    saved->model_state = snapshot;
+    fill_state(inst, saved, inst->mode, inst->built, inst->steps_done, inst->start_time, inst->step_size, snapshot);
     *FMUState = saved;
     return fmi3OK;
 }
@@ -1102,11 +1196,8 @@ fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
 fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3SetFMUState")) return fmi3Error;
-    SavedState *saved = (SavedState *)FMUState;
-    if (!saved || !saved->model_state) {
-        log_message(inst, fmi3Error, "fmi3SetFMUState: FMUState is NULL or was freed");
-        return fmi3Error;
-    }
+    SavedState *saved = live_state(inst, "fmi3SetFMUState", FMUState);
+    if (!saved) return fmi3Error;
     PyObject *result = CALL_MODEL(inst, "fmi3SetFMUState", "set_state", "(O)", saved->model_state);
     if (!result) {
         inst->mode = M_ERROR;
@@ -1125,41 +1216,60 @@ fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
 fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3FreeFMUState")) return fmi3Error;
-    if (!FMUState || !*FMUState) return fmi3OK;
-    SavedState *saved = (SavedState *)*FMUState;
-    release(saved->model_state);
-    free(saved);
+    if (!FMUState) return fmi3OK;
+    if (registered(inst, FMUState)) { /* the state itself where a pointer to it is due (fmusim v0.0.39) */
+        log_message(inst, fmi3Warning, "fmi3FreeFMUState: was given the state %p itself, not a pointer to it; "
+                    "freed that state (the standard passes fmi3FMUState*)", (void *)FMUState);
+        free_state(inst, (SavedState *)FMUState);
+        return fmi3Warning;
+    }
+    if (!*FMUState) return fmi3OK;
+    SavedState *saved = live_state(inst, "fmi3FreeFMUState", *FMUState);
+    if (!saved) return fmi3Error;
+    free_state(inst, saved);
     *FMUState = NULL;
     return fmi3OK;
 }
 
-/* The pickled snapshot; new reference or NULL (logged). */
-static PyObject *serialized_payload(Instance *inst, const char *function, SavedState *saved) {
-    return CALL_MODEL(inst, function, "serialize", "(O)", saved->model_state);
+/* The state's bytes (state_format.py), made once per saved state; a borrowed reference or NULL (logged). */
+static PyObject *serialized_bytes(Instance *inst, const char *function, SavedState *saved) {
+    if (saved->serialized) return saved->serialized;
+    PyObject *bytes = CALL_MODEL(inst, function, "serialize", "(OiiKdd)", saved->model_state, saved->mode,
+                                 saved->built, (unsigned long long)saved->steps_done, saved->start_time,
+                                 saved->step_size);
+    if (!bytes) return NULL;
+    PyGILState_STATE gil = py.PyGILState_Ensure();
+    char *data = NULL;
+    Py_ssize_t length = 0;
+    int ok = py.PyBytes_AsStringAndSize(bytes, &data, &length) == 0;
+    if (!ok) py.PyErr_Clear();
+    py.PyGILState_Release(gil);
+    if (!ok) {
+        release(bytes);
+        log_message(inst, fmi3Error, "%s: the runtime returned no bytes", function);
+        return NULL;
+    }
+    saved->serialized = bytes;
+    return bytes;
 }
 
 fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUState, size_t *size) {
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3SerializedFMUStateSize")) return fmi3Error;
-    SavedState *saved = (SavedState *)FMUState;
-    if (!saved || !saved->model_state || !size) {
-        log_message(inst, fmi3Error, "fmi3SerializedFMUStateSize: FMUState or size is NULL");
+    SavedState *saved = live_state(inst, "fmi3SerializedFMUStateSize", FMUState);
+    if (!saved) return fmi3Error;
+    if (!size) {
+        log_message(inst, fmi3Error, "fmi3SerializedFMUStateSize: size is NULL");
         return fmi3Error;
     }
-    PyObject *payload = serialized_payload(inst, "fmi3SerializedFMUStateSize", saved);
-    if (!payload) return fmi3Error;
+    PyObject *bytes = serialized_bytes(inst, "fmi3SerializedFMUStateSize", saved);
+    if (!bytes) return fmi3Error;
     PyGILState_STATE gil = py.PyGILState_Ensure();
     char *data = NULL;
     Py_ssize_t length = 0;
-    int ok = py.PyBytes_AsStringAndSize(payload, &data, &length) == 0;
-    if (!ok) py.PyErr_Clear();
-    py.Py_DecRef(payload);
+    if (py.PyBytes_AsStringAndSize(bytes, &data, &length) != 0) py.PyErr_Clear();
     py.PyGILState_Release(gil);
-    if (!ok) {
-        log_message(inst, fmi3Error, "fmi3SerializedFMUStateSize: the runtime returned no bytes");
-        return fmi3Error;
-    }
-    *size = sizeof(SerializedHeader) + (size_t)length;
+    *size = (size_t)length;
     return fmi3OK;
 }
 
@@ -1167,81 +1277,75 @@ fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState, f
                                  size_t size) {
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3SerializeFMUState")) return fmi3Error;
-    SavedState *saved = (SavedState *)FMUState;
-    if (!saved || !saved->model_state || !serializedState) {
-        log_message(inst, fmi3Error, "fmi3SerializeFMUState: FMUState or serializedState is NULL");
+    SavedState *saved = live_state(inst, "fmi3SerializeFMUState", FMUState);
+    if (!saved) return fmi3Error;
+    if (!serializedState) {
+        log_message(inst, fmi3Error, "fmi3SerializeFMUState: serializedState is NULL");
         return fmi3Error;
     }
-    PyObject *payload = serialized_payload(inst, "fmi3SerializeFMUState", saved);
-    if (!payload) return fmi3Error;
-    fmi3Status status = fmi3OK;
+    PyObject *bytes = serialized_bytes(inst, "fmi3SerializeFMUState", saved);
+    if (!bytes) return fmi3Error;
     PyGILState_STATE gil = py.PyGILState_Ensure();
     char *data = NULL;
     Py_ssize_t length = 0;
-    if (py.PyBytes_AsStringAndSize(payload, &data, &length) != 0) {
-        py.PyErr_Clear();
-        status = fmi3Error;
-    } else if (sizeof(SerializedHeader) + (size_t)length != size) {
-        status = fmi3Error;
-    } else {
-        SerializedHeader header;
-        memset(&header, 0, sizeof header);
-        memcpy(header.magic, STATE_MAGIC, sizeof STATE_MAGIC);
-        header.mode = saved->mode;
-        header.built = saved->built;
-        header.steps_done = saved->steps_done;
-        header.start_time = saved->start_time;
-        header.step_size = saved->step_size;
-        header.payload = (uint64_t)length;
-        memcpy(serializedState, &header, sizeof header);
-        memcpy(serializedState + sizeof header, data, (size_t)length);
-    }
-    py.Py_DecRef(payload);
+    int ok = py.PyBytes_AsStringAndSize(bytes, &data, &length) == 0;
+    if (!ok) py.PyErr_Clear();
+    if (ok && (size_t)length == size) memcpy(serializedState, data, size);
     py.PyGILState_Release(gil);
-    if (status != fmi3OK)
+    if (!ok || (size_t)length != size) {
         log_message(inst, fmi3Error, "fmi3SerializeFMUState: size = %zu does not match "
-                    "fmi3SerializedFMUStateSize (%zu)", size, sizeof(SerializedHeader) + (size_t)length);
-    return status;
+                    "fmi3SerializedFMUStateSize (%zu)", size, (size_t)length);
+        return fmi3Error;
+    }
+    return fmi3OK;
 }
 
 fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte serializedState[], size_t size,
                                    fmi3FMUState *FMUState) {
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3DeserializeFMUState")) return fmi3Error;
-    SerializedHeader header;
-    if (!serializedState || !FMUState || size < sizeof header) {
+    if (!serializedState || !FMUState || size == 0 || size > (size_t)SSIZE_MAX) {
         log_message(inst, fmi3Error, "fmi3DeserializeFMUState: no state (NULL or %zu bytes)", size);
         return fmi3Error;
     }
-    memcpy(&header, serializedState, sizeof header);
-    if (memcmp(header.magic, STATE_MAGIC, sizeof STATE_MAGIC) != 0 || header.payload != size - sizeof header) {
-        log_message(inst, fmi3Error, "fmi3DeserializeFMUState: these %zu bytes are not a state serialized by this "
-                    "FMU (or are truncated)", size);
-        return fmi3Error;
-    }
+    if (*FMUState && !live_state(inst, "fmi3DeserializeFMUState", *FMUState)) return fmi3Error;
     PyGILState_STATE gil = py.PyGILState_Ensure();
-    PyObject *bytes = py.PyBytes_FromStringAndSize((const char *)serializedState + sizeof header,
-                                                   (Py_ssize_t)header.payload);
+    PyObject *bytes = py.PyBytes_FromStringAndSize((const char *)serializedState, (Py_ssize_t)size);
+    if (!bytes) py.PyErr_Clear();
     py.PyGILState_Release(gil);
     if (!bytes) {
-        log_message(inst, fmi3Error, "fmi3DeserializeFMUState: out of memory");
+        log_message(inst, fmi3Error, "fmi3DeserializeFMUState: out of memory for %zu bytes", size);
         return fmi3Error;
     }
-    PyObject *snapshot = CALL_MODEL(inst, "fmi3DeserializeFMUState", "deserialize", "(O)", bytes);
+    /* the runtime parses the bytes as data and checks every field (state_format.py); the C layer's
+     * fields come back beside the snapshot and are checked here before anything is kept */
+    PyObject *parsed = CALL_MODEL(inst, "fmi3DeserializeFMUState", "deserialize", "(O)", bytes);
     release(bytes);
-    if (!snapshot) return fmi3Error;
-    SavedState *saved = *FMUState ? (SavedState *)*FMUState : calloc(1, sizeof(SavedState));
+    if (!parsed) return fmi3Error;
+    PyObject *snapshot = NULL;
+    int mode = 0, built = 0;
+    unsigned long long steps_done = 0;
+    double start_time = 0.0, step_size = 0.0;
+    gil = py.PyGILState_Ensure();
+    int ok = py.PyArg_ParseTuple(parsed, "OiiKdd", &snapshot, &mode, &built, &steps_done, &start_time, &step_size);
+    if (!ok) py.PyErr_Clear();
+    if (ok) py.Py_IncRef(snapshot);
+    py.Py_DecRef(parsed);
+    py.PyGILState_Release(gil);
+    if (!ok || !is_state_mode(mode) || (built != 0 && built != 1) || !isfinite(start_time) || !isfinite(step_size)
+        || step_size < 0.0 || (built && step_size <= 0.0) || ((mode & (M_STEP | M_TERMINATED)) && !built)) {
+        release(snapshot);
+        log_message(inst, fmi3Error, "fmi3DeserializeFMUState: the state's mode (%d), step (%g s) or time is not one "
+                    "an FMU state can have: it was not written by fmi3SerializeFMUState", mode, step_size);
+        return fmi3Error;
+    }
+    int fresh;
+    SavedState *saved = state_slot(inst, "fmi3DeserializeFMUState", FMUState, &fresh);
     if (!saved) {
         release(snapshot);
         return fmi3Error;
     }
-    release(saved->model_state);
-    saved->mode = header.mode;
-    saved->built = header.built;
-    saved->steps_done = header.steps_done;
-    saved->start_time = header.start_time;
-    saved->step_size = header.step_size;
-    saved->model_state = snapshot;
+    fill_state(inst, saved, mode, built, (uint64_t)steps_done, start_time, step_size, snapshot);
     *FMUState = saved;
     return fmi3OK;
 }

@@ -38,7 +38,6 @@ import json
 import logging
 import math
 import os
-import pickle
 import sys
 import threading
 import traceback
@@ -46,6 +45,22 @@ from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
+
+
+def _load_sibling(name: str):
+    """A module beside this file, under a name unique to this copy (each FMU carries its own)."""
+    unique = f"{__name__}__{name}"
+    module = sys.modules.get(unique)
+    if module is None:
+        spec = importlib.util.spec_from_file_location(unique, Path(__file__).with_name(f"{name}.py"))
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[unique] = module
+        spec.loader.exec_module(module)
+    return module
+
+
+_state_format = _load_sibling("state_format")
+StateFormatError = _state_format.StateFormatError
 
 OK, WARNING, DISCARD, ERROR, FATAL = range(5)
 
@@ -59,9 +74,10 @@ DTYPES = {"Float64": np.float64, "Int32": np.int32, "UInt64": np.uint64, "Boolea
 #: No array of an FMU may exceed this (a structural parameter of 10**9 is a typing error).
 MAX_ARRAY_BYTES = 1 << 30
 
-#: The step exchange with fmi3DoStep: t, h, internal steps (in); status, internal steps completed (out).
-IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED = range(5)
-STEP_IO_SIZE = 5  # as the C layer's enum (fmi3Functions.c), which checks the size it is given
+#: The step exchange with fmi3DoStep: t, h, internal steps (in); status, internal steps completed
+#: (out); the most internal steps one call may run (written once, from the declaration).
+IO_TIME, IO_STEP, IO_SUBSTEPS, IO_STATUS, IO_COMPLETED, IO_MAX_SUBSTEPS = range(6)
+STEP_IO_SIZE = 6  # as the C layer's enum (fmi3Functions.c), which checks the size it is given
 
 _REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
                              ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p, ctypes.c_double,
@@ -313,8 +329,11 @@ class _Router(logging.Handler):
 class RuntimeInstance:
     """One FMU instance: buffers registered with the C layer, the values, the adapter (model)."""
 
-    def __init__(self, declaration, instance_name: str, c_instance: int, callbacks, router: _Router):
+    def __init__(self, declaration, instance_name: str, c_instance: int, callbacks, router: _Router,
+                 token: str = "", codec=None):
         self.declaration = declaration
+        self.token = token
+        self.codec = codec  # the FMU state's bytes (state_format.Codec over the package's classes)
         self.model_name = declaration.model_name
         self.instance_name = instance_name
         self.variables = declaration.all_variables()
@@ -330,6 +349,7 @@ class RuntimeInstance:
         self.set_count_view = memoryview(self.set_counts)  # plain ints, read by Values.set_count
         counters(self._c, self.set_counts.ctypes.data, len(self.variables))
         self._step_io = np.zeros(STEP_IO_SIZE)
+        self._step_io[IO_MAX_SUBSTEPS] = declaration.max_steps_per_call
         self._io = memoryview(self._step_io)
         if step_io(self._c, self._step_io.ctypes.data, self._step_io.size) != 0:
             raise MemoryError("the FMI layer did not take the step exchange")
@@ -403,13 +423,15 @@ class RuntimeInstance:
         self.log(ERROR, f"{call} failed: {reason}")
 
     # -- limits -----------------------------------------------------------------------------------------
-    def check_limits(self, causality: str) -> None:
+    def check_limits(self, causality: str, buffers=None) -> None:
         """Raise ValueError naming the first variable of ``causality`` whose value is outside its limit
-        (variable, value, range and why), or a structural parameter no array could have."""
+        (variable, value, range and why), or a structural parameter no array could have; in the FMU's
+        buffers, or in ``buffers`` (a state's, before it is set)."""
+        buffers = self.buffers if buffers is None else buffers
         for vr, v in enumerate(self.variables):
             if v.causality != causality or v.type == "String":
                 continue
-            values = self.buffers[vr]
+            values = buffers[vr]
             if v.causality == "structuralParameter" and int(values[0]) > 10**9:
                 raise ValueError(f"{v.name} = {int(values[0])} is not a plausible array size")
             if v.limit is None:
@@ -530,22 +552,135 @@ class RuntimeInstance:
             setattr(adapter, name, self.values)
         self.adapter = adapter
 
-    def serialize(self, snapshot: _Snapshot) -> bytes:
-        # plain data around the model's own objects (pickled by their package's stable name)
-        return pickle.dumps((self.model_name, dict(vars(snapshot))), protocol=pickle.HIGHEST_PROTOCOL)
+    def discard(self, snapshot: _Snapshot) -> None:
+        """Free a state's memory now (fmi3FreeFMUState). Its objects are the snapshot's own copies and
+        refer to each other (a force field and its law), which reference counting alone would leave
+        to the cycle collector, holding tens of MB per Tissue state until it runs: empty them (only
+        the package's own objects and plain containers; anything else may be shared)."""
+        seen, stack = set(), [snapshot.adapter_state]
+        while stack:
+            item = stack.pop()
+            if id(item) in seen:
+                continue
+            seen.add(id(item))
+            if type(item) is dict:
+                stack.extend(item.values())
+                item.clear()
+            elif type(item) in (list, tuple):
+                stack.extend(item)
+                if type(item) is list:
+                    item.clear()
+            elif self.codec.owns(item) and hasattr(item, "__dict__"):
+                stack.append(vars(item))
+        snapshot.adapter_state = snapshot.buffers = None
 
-    def deserialize(self, data: bytes) -> _Snapshot:
-        model_name, fields = pickle.loads(data)
-        if model_name != self.model_name:
-            raise ValueError(f"this serialized state is of {model_name}, not of {self.model_name}")
-        snapshot = _Snapshot(**fields)
-        if len(snapshot.buffers) != len(self.variables):
-            raise ValueError("this serialized state is from another build of the FMU (different variables)")
-        return snapshot
+    def serialize(self, snapshot: _Snapshot, mode: int, built: int, steps_done: int, start_time: float,
+                  step_size: float) -> bytes:
+        """The state's bytes (state_format.py): data only, with the FMU's identity and a SHA-256."""
+        document = {
+            "model": self.model_name, "token": self.token, "layer": [mode, built, steps_done, start_time, step_size],
+            "variables": [[v.name, v.type] for v in self.variables],
+        }
+        trees = {
+            "buffers": snapshot.buffers, "strings": {str(k): v for k, v in snapshot.strings.items()},
+            "set_counts": snapshot.set_counts, "adapter_class": snapshot.adapter_class,
+            "adapter_state": snapshot.adapter_state, "values_attributes": snapshot.values_attributes,
+        }
+        return self.codec.encode(document, trees)
+
+    def deserialize(self, data: bytes) -> tuple:
+        """(snapshot, mode, built, steps_done, start_time, step_size) from a state's bytes; every
+        field is checked before anything is returned (the C layer checks the mode); StateFormatError
+        (a ValueError) names what is wrong."""
+        document, trees = self.codec.decode(data)
+        if document.get("model") != self.model_name:
+            raise StateFormatError(f"this serialized state is of {document.get('model')!r}, not of {self.model_name}")
+        if document.get("token") != self.token:
+            raise StateFormatError(
+                f"this serialized state is from another build of {self.model_name} (instantiationToken "
+                f"{document.get('token')!r}, this FMU {self.token!r}): restore it with the FMU that wrote it")
+        if document.get("variables") != [[v.name, v.type] for v in self.variables]:
+            raise StateFormatError("this serialized state declares other variables than this FMU")
+        layer = document.get("layer")
+        if not (isinstance(layer, list) and len(layer) == 5 and all(type(x) in (int, float) for x in layer)
+                and type(layer[0]) is int and layer[1] in (0, 1) and type(layer[2]) is int):
+            raise StateFormatError("this serialized state has a malformed layer record")
+        mode, built, steps_done, start_time, step_size = layer
+        if not 0 <= steps_done <= 2 ** 53:
+            raise StateFormatError(f"this serialized state has {steps_done} internal steps done, out of range")
+        if not (math.isfinite(start_time) and math.isfinite(step_size) and step_size >= 0.0):
+            raise StateFormatError(f"this serialized state has start time {start_time!r} and step {step_size!r}; "
+                                   "both must be finite and the step positive")
+        snapshot = self._checked_snapshot(trees)
+        internal_step = float(snapshot.buffers[self.references["internal_step"]][0])
+        if built and step_size != internal_step:
+            raise StateFormatError(f"this serialized state steps by {step_size!r} s but its internal_step is "
+                                   f"{internal_step!r} s")
+        if not math.isfinite(start_time + steps_done * step_size):
+            raise StateFormatError("this serialized state's time is not finite")
+        return snapshot, mode, int(built), steps_done, float(start_time), float(step_size)
+
+    def _checked_snapshot(self, trees: dict) -> _Snapshot:
+        """The snapshot of a decoded state after checking every value against this FMU's table."""
+        buffers, strings = trees.get("buffers"), trees.get("strings")
+        if not (isinstance(buffers, list) and len(buffers) == len(self.variables)):
+            raise StateFormatError("this serialized state holds another number of variables than this FMU")
+        for vr, v in enumerate(self.variables):
+            b = buffers[vr]
+            if v.type == "String":
+                if b is not None:
+                    raise StateFormatError(f"this serialized state holds numbers for the string {v.name}")
+            elif not (isinstance(b, np.ndarray) and b.ndim == 1 and b.dtype == DTYPES[v.type]):
+                raise StateFormatError(f"this serialized state holds no {v.type} values for {v.name}")
+        sizes = self._sizes(buffers)
+        for vr, v in enumerate(self.variables):
+            if v.type != "String" and buffers[vr].size != sizes[vr]:
+                raise StateFormatError(f"this serialized state holds {buffers[vr].size} values for {v.name}, whose "
+                                       f"structural parameters make it {sizes[vr]}")
+            if v.type == "Float64" and v.causality != "output" and not np.isfinite(buffers[vr]).all():
+                raise StateFormatError(f"this serialized state holds a NaN or infinity in {v.name}")
+        for causality in ("structuralParameter", "parameter"):
+            try:
+                self.check_limits(causality, buffers)
+            except ValueError as exc:
+                raise StateFormatError(f"this serialized state holds {exc}") from None
+        expected = {str(vr) for vr, v in enumerate(self.variables) if v.type == "String"}
+        if not (isinstance(strings, dict) and set(strings) == expected
+                and all(isinstance(s, str) and "\0" not in s for s in strings.values())):
+            raise StateFormatError("this serialized state's strings do not match this FMU's string variables")
+        set_counts = trees.get("set_counts")
+        if not (isinstance(set_counts, np.ndarray) and set_counts.dtype == np.uint64
+                and set_counts.shape == (len(self.variables),)):
+            raise StateFormatError("this serialized state's set counters do not match this FMU's variables")
+        adapter_class, state = trees.get("adapter_class"), trees.get("adapter_state")
+        attributes = trees.get("values_attributes")
+        if adapter_class is None:
+            if state is not None or attributes != ():
+                raise StateFormatError("this serialized state has a model state but no model")
+        elif not (adapter_class is self.declaration.adapter and isinstance(state, dict)
+                  and all(isinstance(k, str) for k in state) and isinstance(attributes, tuple)
+                  and all(isinstance(a, str) and a.isidentifier() and a not in state for a in attributes)):
+            raise StateFormatError("this serialized state's model is not the one this FMU builds")
+        return _Snapshot(buffers, {int(k): v for k, v in strings.items()}, set_counts, adapter_class, state,
+                         attributes)
+
+    def _sizes(self, buffers) -> list[int]:
+        """Each variable's number of values when ``buffers`` hold the structural parameters."""
+        sizes = []
+        for v in self.variables:
+            size = 1
+            for d in v.shape:
+                n = int(buffers[self.references[d]][0]) if isinstance(d, str) else int(d)
+                if not 0 <= n <= 10**9:
+                    raise StateFormatError(f"this serialized state sets {d} = {n}, which no array can have")
+                size *= n
+            sizes.append(size)
+        return sizes
 
 
 # ---- instantiation ------------------------------------------------------------------------------------
 _routers: dict[str, _Router] = {}
+_codecs: dict[str, object] = {}
 
 
 def _load_package(resources: Path, unique: str, package: str, token: str):
@@ -605,4 +740,8 @@ def instantiate(resources: str, model_identifier: str, token: str, instance_name
         package_logger.propagate = False
     callbacks = (_REGISTER(register), _COUNTERS(counters), _COUNTERS(step_io), _LOG(log),
                  _GET_STRING(get_string), _SET_STRING(set_string))
-    return RuntimeInstance(declaration, instance_name, c_instance, callbacks, router)
+    codec = _codecs.get(unique)
+    if codec is None:
+        modules = [m for n, m in sys.modules.items() if (n == unique or n.startswith(unique + ".")) and m is not None]
+        codec = _codecs[unique] = _state_format.Codec(unique, modules)
+    return RuntimeInstance(declaration, instance_name, c_instance, callbacks, router, token, codec)

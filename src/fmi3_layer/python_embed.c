@@ -49,6 +49,7 @@ static int bind_all(void *handle, char *reason, size_t reason_size) {
     BIND(PyBytes_AsStringAndSize);
     BIND(PyBytes_FromStringAndSize);
     BIND(PyErr_SetInterrupt);
+    BIND(PyArg_ParseTuple);
 #undef BIND
     return 0;
 }

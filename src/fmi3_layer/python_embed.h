@@ -46,6 +46,7 @@ typedef struct {
     int (*PyBytes_AsStringAndSize)(PyObject *, char **, Py_ssize_t *);
     PyObject *(*PyBytes_FromStringAndSize)(const char *, Py_ssize_t);
     void (*PyErr_SetInterrupt)(void);
+    int (*PyArg_ParseTuple)(PyObject *, const char *, ...);
 } PythonApi;
 
 extern PythonApi py;

@@ -259,4 +259,7 @@ DECLARATION = FmuDeclaration(
     variables=VARIABLES,
     adapter=TissueFmu,
     limits=LIMITS,
+    # a frame costs milliseconds and up to a few hundred under strong load: 60 s of simulated time
+    # in one call is minutes of work at worst, and no master needs more in one call
+    max_steps_per_call=1800,
 )
