@@ -213,6 +213,8 @@ def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
             "package": spec.package,
             "declaration": spec.declaration,
             "instantiation_token": description["token"],
+            # checked at instantiation: a modelDescription.xml changed after the build is refused
+            "model_description_sha256": hashlib.sha256((root / "modelDescription.xml").read_bytes()).hexdigest(),
             **environment,
         }
         (resources / "fmu.json").write_text(json.dumps(meta, indent=2))

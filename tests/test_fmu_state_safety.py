@@ -327,3 +327,73 @@ def test_serialized_states_restore_in_another_process_bit_identically(catheter_f
     np.testing.assert_array_equal(np.load(tmp_path / "out.npy"),
                                   np.concatenate([expected[k].ravel() for k in sorted(expected)]))
     assert len(STATE_CASES) == 3
+
+
+@pytest.mark.parametrize("change", ["renamed variable", "deleted"])
+def test_an_fmu_whose_model_description_changed_after_the_build_is_refused(change, catheter_fmu, tmp_path):
+    """The importer pairs value references with the modelDescription.xml it reads: one edited after
+    the build (a variable renamed) would silently pair them wrongly; the FMU refuses to instantiate."""
+    from fmpy import extract, read_model_description
+    from fmpy.fmi3 import FMU3Slave
+
+    md = read_model_description(str(catheter_fmu))
+    folder = Path(extract(str(catheter_fmu), str(tmp_path / "fmu")))
+    description = folder / "modelDescription.xml"
+    if change == "deleted":
+        description.unlink()
+    else:
+        description.write_text(description.read_text().replace('name="insertion"', 'name="insertion_m"'))
+    messages = []
+    slave = FMU3Slave(guid=md.guid, unzipDirectory=str(folder), modelIdentifier=md.coSimulation.modelIdentifier,
+                      instanceName="edited")
+    with pytest.raises(Exception, match="Failed to instantiate"):
+        slave.instantiate(loggingOn=True, logMessage=lambda env, status, category, message: messages.append(
+            message.decode()))
+    slave.freeLibrary()
+    words = "not the modelDescription.xml this FMU was built with" if change != "deleted" else "cannot read"
+    assert any(words in m for m in messages), messages
+
+
+def _find_key(node, key):
+    """The [key, value] pair of ``key`` anywhere in a state's tree (dict entries are [key, value])."""
+    if isinstance(node, dict):
+        for value in node.values():
+            found = _find_key(value, key)
+            if found:
+                return found
+    elif isinstance(node, list):
+        if len(node) == 2 and node[0] == key:
+            return node
+        for value in node:
+            found = _find_key(value, key)
+            if found:
+                return found
+    return None
+
+
+@pytest.mark.parametrize("replacement, words", [
+    ("text", "passive_bend is a str"),
+    ("set_counts", "passive_bend is a uint64 array"),
+    ({"l": [1.0, 2.0]}, "passive_bend is a list"),
+])
+@pytest.mark.parametrize("initialized", [True, False])
+def test_a_model_state_that_is_not_the_models_is_refused_and_nothing_is_set(replacement, words, initialized,
+                                                                             all_fmus):
+    """Valid bytes whose model part has another kind of value than the model its parameters build
+    (a forger's state): refused by fmi3SetFMUState with where it differs; the instance goes on."""
+    with fmu_instance(all_fmus["Catheter"]) as fmu:
+        data = _saved(fmu, "Catheter")
+        expected = _drive(fmu, "Catheter", 3, 2)
+    document, arrays = _split(data)
+    pair = _find_key(document["trees"]["adapter_state"], "passive_bend")
+    pair[1] = document["trees"]["set_counts"] if replacement == "set_counts" else replacement
+    with fmu_instance(all_fmus["Catheter"], instance_name="other") as fmu:
+        if initialized:
+            fmu.initialize()
+        state = fmu.slave.deserializeFMUState(_sign(document, arrays))
+        fmu.expect_error(lambda: fmu.slave.setFMUState(state), "fmi3SetFMUState", "does not match", words)
+        good = fmu.slave.deserializeFMUState(data)  # the genuine state still restores, built or not
+        fmu.slave.setFMUState(good)
+        again = _drive(fmu, "Catheter", 3, 2)
+    for port in expected:
+        np.testing.assert_array_equal(again[port], expected[port])

@@ -295,15 +295,58 @@ def _value_property(instance: "RuntimeInstance", vr: int, variable) -> property:
 
 
 class _Snapshot:
-    """An FMU state: every buffer, the strings, the set counters and the adapter's attributes."""
+    """An FMU state: every buffer, the strings, the set counters and the adapter's attributes;
+    ``from_bytes`` when it was read from serialized bytes (checked against the model when set)."""
 
-    def __init__(self, buffers, strings, set_counts, adapter_class, adapter_state, values_attributes):
+    def __init__(self, buffers, strings, set_counts, adapter_class, adapter_state, values_attributes,
+                 from_bytes=False):
+        self.from_bytes = from_bytes
         self.buffers = buffers
         self.strings = strings
         self.set_counts = set_counts
         self.adapter_class = adapter_class
         self.adapter_state = adapter_state
         self.values_attributes = values_attributes
+
+
+def _mismatch(value, live, path: str, codec, seen: set) -> str | None:
+    """Where ``value`` (a state's) differs in kind from ``live`` (the model's), or None. Absent parts
+    (None on either side, an attribute on one side) and lengths may differ: they change at run time."""
+    if value is None or live is None:
+        return None
+    if type(value) is not type(live):
+        if isinstance(value, (int, float)) and isinstance(live, (int, float)) and type(value) is not bool \
+                and type(live) is not bool:
+            return None
+        return f"{path} is a {type(value).__name__}, the model's a {type(live).__name__}"
+    if id(value) in seen:
+        return None
+    seen.add(id(value))
+    if isinstance(value, np.ndarray):
+        if value.dtype != live.dtype or value.ndim != live.ndim:
+            return f"{path} is a {value.dtype} array of {value.ndim} dimensions, the model's {live.dtype} of {live.ndim}"
+        return None
+    if isinstance(value, dict):
+        for key in value.keys() & live.keys():
+            found = _mismatch(value[key], live[key], f"{path}[{key!r}]", codec, seen)
+            if found:
+                return found
+        return None
+    if isinstance(value, (list, tuple)):
+        if len(value) == len(live):
+            for k, (a, b) in enumerate(zip(value, live)):
+                found = _mismatch(a, b, f"{path}[{k}]", codec, seen)
+                if found:
+                    return found
+        return None
+    if codec.owns(value) and hasattr(value, "__dict__"):
+        # attributes made on first use (work arrays) may be on one side only: the common ones must agree
+        mine, theirs = vars(value), vars(live)
+        for key in mine.keys() & theirs.keys():
+            found = _mismatch(mine[key], theirs[key], f"{path}.{key}", codec, seen)
+            if found:
+                return found
+    return None
 
 
 class _Router(logging.Handler):
@@ -533,6 +576,41 @@ class RuntimeInstance:
                          values_attributes)
 
     def set_state(self, snapshot: _Snapshot) -> None:
+        if snapshot.from_bytes and snapshot.adapter_class is not None:
+            self._check_model_state(snapshot)
+        self._apply(snapshot)
+
+    def _check_model_state(self, snapshot: _Snapshot) -> None:
+        """A state read from bytes must hold the model its parameters build: the same classes, the
+        same attributes, arrays of the same types and dimensions (their lengths may change at run
+        time). The model to compare with is the live one when the parameters are the same, else one
+        built from the state's parameters; on any mismatch the instance is left as it was."""
+        template, before = self.adapter, None
+        parameters = [vr for vr, v in enumerate(self.variables)
+                      if v.causality in ("parameter", "structuralParameter")]
+        same = template is not None and all(
+            self.read_string(vr) == snapshot.strings[vr] if self.variables[vr].type == "String"
+            else np.array_equal(self.buffers[vr], snapshot.buffers[vr]) for vr in parameters)
+        try:
+            if not same:
+                before = self.get_state()
+                self._apply(_Snapshot(snapshot.buffers, snapshot.strings, snapshot.set_counts, None, None, ()))
+                try:
+                    template = self.declaration.adapter(self.values)
+                except Exception as exc:
+                    raise StateFormatError(f"this serialized state's parameters do not build a model ({exc})") \
+                        from None
+            live = {k: v for k, v in vars(template).items() if not isinstance(v, Values)}
+            mismatch = _mismatch(snapshot.adapter_state, live, "model", self.codec, set())
+            if mismatch:
+                raise StateFormatError(f"this serialized state's model does not match the model its parameters "
+                                       f"build: {mismatch}")
+        except BaseException:
+            if before is not None:
+                self._apply(before)
+            raise
+
+    def _apply(self, snapshot: _Snapshot) -> None:
         for vr, v in enumerate(self.variables):  # sizes first: they size the other buffers
             if v.causality == "structuralParameter":
                 self.buffers[vr][:] = snapshot.buffers[vr]
@@ -662,7 +740,7 @@ class RuntimeInstance:
                   and all(isinstance(a, str) and a.isidentifier() and a not in state for a in attributes)):
             raise StateFormatError("this serialized state's model is not the one this FMU builds")
         return _Snapshot(buffers, {int(k): v for k, v in strings.items()}, set_counts, adapter_class, state,
-                         attributes)
+                         attributes, from_bytes=True)
 
     def _sizes(self, buffers) -> list[int]:
         """Each variable's number of values when ``buffers`` hold the structural parameters."""
@@ -714,6 +792,25 @@ def _load_package(resources: Path, unique: str, package: str, token: str):
     return module
 
 
+def _check_model_description(resources: Path, meta: dict) -> None:
+    """Refuse an FMU whose modelDescription.xml is not the one it was built with: an importer reads
+    value references, types and sizes from that file, and a changed one would pair them wrongly."""
+    expected = meta.get("model_description_sha256")
+    path = resources.parent / "modelDescription.xml"
+    if expected is None:
+        raise ValueError("resources/fmu.json records no digest of the modelDescription.xml: the FMU is from an "
+                         "older build; build it again (python -m orchestration build)")
+    try:
+        actual = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise ValueError(f"cannot read {path} ({exc.strerror or exc}): extract the whole FMU, as the standard "
+                         "asks, and instantiate it from there") from None
+    if actual != expected:
+        raise ValueError(f"{path} is not the modelDescription.xml this FMU was built with (its SHA-256 differs): "
+                         "the FMU was changed after its build; use the FMU as built, or build it again "
+                         "(python -m orchestration build)")
+
+
 def instantiate(resources: str, model_identifier: str, token: str, instance_name: str, c_instance: int,
                 register: int, counters: int, step_io: int, log: int, get_string: int, set_string: int):
     resources = Path(resources)
@@ -721,6 +818,7 @@ def instantiate(resources: str, model_identifier: str, token: str, instance_name
     if token != meta["instantiation_token"]:
         raise ValueError(f"instantiationToken {token!r} does not match this FMU's {meta['instantiation_token']!r}: "
                          "the modelDescription.xml and the resources are from different builds")
+    _check_model_description(resources, meta)
     # A stable name (states serialized by one process load in another, numba's cache refers to
     # it); another build of the same FMU in this process gets a name of its own. Each build has
     # its own copy of this module, so the build under a name is told by the package's token.
