@@ -460,7 +460,14 @@ class RuntimeInstance:
     def _fail(self, call: str, exc: BaseException) -> None:
         if isinstance(exc, KeyboardInterrupt):  # the C layer logs it and hands it back to the importer
             raise exc
-        reason = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, ValueError):  # the model's own refusals name the parameter and the fix
+            reason = str(exc)
+        elif isinstance(exc, MemoryError):
+            reason = "out of memory: use a coarser mesh or fewer elements, or free memory in the importer's process"
+        else:  # no refusal the model meant: say so, and how to get what a report needs
+            reason = (f"an internal error of the {self.model_name} model ({type(exc).__name__}: {exc}); this is a "
+                      "defect of the FMU, not of the importer's input: report it with this log (the environment "
+                      "variable AAA_COSIM_FMU_TRACEBACK=1 adds the traceback)")
         if os.environ.get("AAA_COSIM_FMU_TRACEBACK"):  # for the FMU's developers
             reason += "\n" + "".join(traceback.format_exception(exc))
         self.log(ERROR, f"{call} failed: {reason}")

@@ -43,7 +43,11 @@ LIMITS = {
     "max_patch_nodes": Limit(1, 256, "the compliance block is (3 n)^2 values solved by Tissue each frame"),
     "tissue_positions": Limit(-100.0, 100.0, "positions of a body's tissue lie within 100 m of the origin"),
     "tissue_velocities": Limit(-1e3, 1e3, "tissue moves at centimetres per second; 1 km/s is a diverged input"),
-    "compliance": Limit(-1.0, 1.0, "a wall's compliance is micrometres to millimetres per newton; 1 m/N is no wall"),
+    # Tissue's softest accepted wall (young_modulus 100 Pa, no viscosity) yields 10 m/N over a 30 Hz
+    # frame on the default mesh (its nodes' inertia bounds W, not the elasticity): this range must
+    # hold every W a Tissue within its own limits sends (tested across the two tables)
+    "compliance": Limit(-1e4, 1e4, "the softest wall Tissue accepts yields about 10 m/N over a 30 Hz frame; "
+                                   "beyond 1e4 m/N the connection or the unit is broken"),
     "tool_positions": Limit(-100.0, 100.0, "tool points lie within 100 m of the origin"),
     "tool_velocities": Limit(-1e3, 1e3, "a hand moves a tool at most a few metres per second; 1 km/s is a broken "
                                         "input"),

@@ -1,0 +1,31 @@
+"""The limit tables of connected FMUs agree: what one FMU within its own limits sends, the FMU it
+is connected to accepts (issue 33: a Tissue with young_modulus 100 Pa, inside its range, sent a
+compliance of 7.7 m/N that Contact refused, ending the run halfway)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fmpy import read_model_description
+
+from fmu_harness import fmu_instance
+
+
+def _range(fmu_path, name):
+    variable = {v.name: v for v in read_model_description(str(fmu_path)).modelVariables}[name]
+    return float(variable.min), float(variable.max)
+
+
+@pytest.mark.parametrize("viscosity", [0.0, 50.0])
+def test_the_softest_tissue_sends_a_compliance_contact_accepts(tissue_fmu, contact_fmu, viscosity):
+    low_e, _ = _range(tissue_fmu, "young_modulus")
+    low_w, high_w = _range(contact_fmu, "compliance")
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.set("young_modulus", low_e)
+        fmu.set("viscosity", viscosity)
+        fmu.initialize()
+        n = fmu.size("patch_nodes")
+        fmu.set("patch_nodes", np.arange(n) * 97 % fmu.size("surface_positions") // 3)
+        fmu.slave.doStep(0.0, float(fmu.md.coSimulation.fixedInternalStepSize))
+        w = fmu.get("compliance")
+    assert np.abs(w).max() > 1.0  # soft enough to have crossed the former 1 m/N limit
+    assert low_w <= w.min() and w.max() <= high_w, (w.min(), w.max(), low_w, high_w)
