@@ -21,6 +21,7 @@ import csv
 import logging
 import math
 import numbers
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -304,14 +305,90 @@ class PiecewiseLinearSource(Source):
         return {out: np.array(row[s]) for out, s in self._slice_list}
 
 
+#: The longest line a CSV signal may have, in bytes: a row of numbers is a few hundred; a longer
+#: line is no signal (a binary file, a file without line breaks) and would only fill the memory.
+CSV_MAX_LINE = 1 << 20
+
+
+class _CsvUnreadable(Exception):
+    """A line of a CSV file that cannot be read as text: ``line`` and what is wrong and the fix."""
+
+    def __init__(self, line: int, reason: str):
+        super().__init__(reason)
+        self.line, self.reason = line, reason
+
+
+#: A line ends at LF, CR LF or a lone CR (as in text mode with newline=""; old spreadsheet exports end
+#: lines with CR alone): the split keeps each line's end for csv.reader.
+_CR_LINE_END = re.compile(r"(?<=\r)(?!\n)")
+
+
+def _csv_lines(fh, position: list[int]):
+    """The text lines of the binary file ``fh`` for csv.reader, each checked: UTF-8 (a byte-order
+    mark, as spreadsheet programs write one, skipped), no NUL, at most CSV_MAX_LINE bytes.
+    ``position[0]`` is the number of the line last read (csv.reader's own count lags on errors)."""
+    while True:
+        raw = fh.readline(CSV_MAX_LINE + 1)
+        if not raw:
+            return
+        line = position[0] + 1
+        if len(raw) > CSV_MAX_LINE:
+            raise _CsvUnreadable(line, f"is longer than {CSV_MAX_LINE} bytes, which no row of numbers is: the file "
+                                       "is binary or has no line breaks; give a CSV text file, one row per line")
+        if line == 1 and raw.startswith(b"\xef\xbb\xbf"):
+            raw = raw[3:]
+        nul = raw.find(b"\0")
+        if nul >= 0:
+            raise _CsvUnreadable(line, f"holds a NUL byte at column {nul + 1}: the file is binary or not UTF-8 "
+                                       "(UTF-16, as some spreadsheet programs write 'Unicode text'?); save it as "
+                                       "CSV in UTF-8")
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise _CsvUnreadable(line, f"is not UTF-8 text (byte {raw[exc.start]:#04x} at column {exc.start + 1}); "
+                                       "save the file as CSV in UTF-8") from None
+        for part in _CR_LINE_END.split(text) if "\r" in text else (text,):
+            if part:
+                position[0] += 1
+                yield part
+
+
+def _csv_rows(problems, path: Path, key: str) -> list[list[str]] | None:
+    """The rows of the CSV file ``path``, or None with the problem (naming the file, the line and
+    the fix) in ``problems``: a file that cannot be opened or read, a line that is no text, a field
+    longer than the csv module's limit."""
+    position = [0]
+    where = f"{key}: CSV file {str(path)!r}"
+    try:
+        with path.open("rb") as fh:
+            return list(csv.reader(_csv_lines(fh, position)))
+    except OSError as exc:
+        problems.append(f"{where}: cannot read it ({exc.strerror or exc}): make it readable for this user "
+                        f"(e.g. `chmod a+r {path}`) or give a copy that is")
+    except _CsvUnreadable as exc:
+        problems.append(f"{where} line {exc.line} {exc.reason}")
+    except csv.Error as exc:
+        fix = ("a field of a signal is a number: close the quote opened before it (or remove it), or give a CSV of "
+               "numbers") if "field limit" in str(exc) else "give a CSV of numbers, one row per line"
+        problems.append(f"{where} line {position[0]}: {exc}; {fix}")
+    return None
+
+
 def _read_csv(problems, path: Path, columns: dict, time_column: str, key="path"):
     """Read the CSV into (times, {output: (values, scalar)}); every problem goes to `problems`."""
-    if not path.is_file():
+    try:
+        found = path.is_file()
+    except OSError as exc:  # a folder on the way that this user may not enter (EACCES is not "missing")
+        problems.append(f"{key}: cannot read the CSV file {str(path)!r} ({exc.strerror or exc}): make it and its "
+                        "folders readable for this user, or give a copy that is")
+        return None, {}
+    if not found:
         problems.append(f"{key}: CSV file {str(path)!r} does not exist: give a path to a CSV file with a header "
                         f"row (relative paths are relative to the scene file)")
         return None, {}
-    with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
+    rows = _csv_rows(problems, path, key)
+    if rows is None:
+        return None, {}
     if not rows:
         problems.append(f"{key}: CSV file {str(path)!r} is empty: it needs a header row and numeric rows")
         return None, {}

@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import datetime
 import hashlib
+import io
 import json
 import logging
 import os
+import pickletools
 import shutil
 import site
 import subprocess
@@ -51,6 +53,15 @@ RUNTIME_FILES = ("fmi3_runtime.py", "numba_cache.py", "state_format.py")
 
 class BuildError(RuntimeError):
     """A build step failed; the message names the step and the fix."""
+
+
+def unwritable(step: str, exc: OSError, folder: Path) -> BuildError:
+    """The BuildError of a build step that could not write (or read) a file in ``folder``: a
+    read-only checkout, one owned by another user, a full disk. Names the file and the fix."""
+    where = exc.filename if exc.filename is not None else folder
+    return BuildError(f"{step}: cannot write {where} ({exc.strerror or exc}). The build writes into {folder}: run "
+                      f"`python -m orchestration build` once as a user who may write there (the owner of the "
+                      f"checkout), or use a checkout of your own")
 
 
 @dataclass(frozen=True)
@@ -102,15 +113,18 @@ def _shared_library(name: str, what: str, sources: list[Path], arguments, build_
     if compiler is None:
         raise BuildError(f"no C compiler found (cc, gcc or clang) to compile {what}. Install one (Debian: "
                          "`apt-get install -y gcc`) or set CC, and build again.")
-    work.mkdir(parents=True, exist_ok=True)
     partial = work / f"{name}.so.{os.getpid()}.partial"  # two processes may compile at once
     command = [compiler, *arguments(partial)]
-    proc = subprocess.run(command, capture_output=True, text=True)
-    if proc.returncode != 0:
-        partial.unlink(missing_ok=True)
-        raise BuildError(f"compiling {what} failed (exit {proc.returncode}):\n{' '.join(command)}\n"
-                         f"{proc.stderr[-3000:]}")
-    partial.replace(library)
+    try:
+        work.mkdir(parents=True, exist_ok=True)
+        proc = subprocess.run(command, capture_output=True, text=True)
+        if proc.returncode != 0:
+            partial.unlink(missing_ok=True)
+            raise BuildError(f"compiling {what} failed (exit {proc.returncode}):\n{' '.join(command)}\n"
+                             f"{proc.stderr[-3000:]}")
+        partial.replace(library)
+    except OSError as exc:
+        raise unwritable(f"compiling {what}", exc, build_dir) from None
     return library
 
 
@@ -195,6 +209,15 @@ def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
     library = layer_library()
     environment = python_environment()
     dest = Path(dest)
+    try:
+        return _assemble(spec, package_dir, library, environment, dest)
+    except OSError as exc:
+        raise unwritable(f"building {name}.fmu", exc, dest) from None
+
+
+def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict, dest: Path) -> Path:
+    """Put the FMU together in a temporary folder and move its archive into ``dest``."""
+    name = spec.model_identifier
     dest.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f"build_{name}_") as tmp:
         root = Path(tmp) / "fmu"
@@ -303,7 +326,11 @@ def ensure_fmus_built(quiet: bool = False) -> None:
         if fmu_is_stale(name):
             if not quiet:
                 print(f"building fmus/{name}.fmu ...", flush=True)
-            build_fmu(name)
+            try:
+                build_fmu(name)
+            except BuildError as exc:
+                raise BuildError(f"fmus/{name}.fmu is missing or older than its sources and cannot be built: "
+                                 f"{exc}") from None
     try:  # the master's compiled loop, so that the first run does not compile it while it is timed
         compiled_loop_library()
     except BuildError as exc:
@@ -312,7 +339,84 @@ def ensure_fmus_built(quiet: bool = False) -> None:
 
 
 def _numba_cache_root() -> Path:
+    """The folder the FMUs cache their compiled kernels in (as src/fmi3_layer/numba_cache.py finds it);
+    RuntimeError when there is no home folder to find it in."""
     return Path(os.environ.get("AAA_COSIM_NUMBA_CACHE", Path.home() / ".cache" / "aaa-cosim" / "numba"))
+
+
+#: What to do when the numba cache folder cannot be used (said with the reason).
+_CACHE_FIX = ("the FMUs then compile their kernels in every run (tens of seconds). Set AAA_COSIM_NUMBA_CACHE to a "
+              "folder this user can write, or run with this user's own HOME (`sudo -H`, not plain `sudo`)")
+
+
+def _usable_cache_root() -> Path | None:
+    """The numba cache folder, or None (with a warning saying why and the fix) when this user cannot
+    look into it: a HOME of another user (sudo without -H), no home folder at all."""
+    try:
+        root = _numba_cache_root()
+        root.exists()  # EACCES is an exception here, not False
+    except RuntimeError as exc:  # Path.home(): no HOME and no entry in the user database
+        logger.warning("no numba cache folder (%s): %s", exc, _CACHE_FIX)
+        return None
+    except OSError as exc:
+        logger.warning("the numba cache folder %s cannot be used (%s): %s", root, exc.strerror or exc, _CACHE_FIX)
+        return None
+    return root
+
+
+def _current_cache_folders(root: Path) -> list[Path]:
+    """The folders of the numba cache that the current sources' kernels load from. numba_cache
+    names each after a source file's content (the name ends in "-" and the first 24 hex digits of
+    its SHA-256), so a folder of an older source is never read again, and is not looked at here."""
+    digests = {hashlib.sha256(path.read_bytes()).hexdigest()[:24]
+               for spec in FMU_SPECS.values() for path in (Path(spec.source_root) / spec.package).rglob("*.py")}
+    return sorted(folder for folder in root.iterdir() if folder.is_dir() and folder.name.rpartition("-")[2] in digests)
+
+
+def _pickle_problem(data: bytes, count: int) -> str | None:
+    """Why ``data`` is not ``count`` complete pickles one after the other, or None. Read with
+    pickletools, which follows the opcodes without making any object (nothing in it runs)."""
+    stream = io.BytesIO(data)
+    try:
+        for _ in range(count):
+            for _ in pickletools.genops(stream):
+                pass
+    except Exception as exc:  # genops: ValueError for a truncated stream or an unknown opcode
+        return f"not complete ({exc})"
+    if stream.tell() != len(data):
+        return f"followed by {len(data) - stream.tell()} bytes of something else"
+    return None
+
+
+def numba_cache_damage(root: Path) -> str | None:
+    """What is damaged in the numba cache ``root`` that the current kernels load from, naming the
+    folders to delete, or None. numba writes each file whole (a temporary file, then a rename), so a
+    damaged one is a disk's or a copy's doing; the FMUs would fail to load it ("UnpicklingError:
+    pickle data was truncated"), and only deleting it makes numba compile it again."""
+    damaged: dict[Path, str] = {}  # folder -> what is wrong with its first damaged file
+    try:
+        for folder in _current_cache_folders(root) if root.is_dir() else []:
+            for file in sorted(folder.iterdir()):
+                count = {".nbi": 2, ".nbc": 1}.get(file.suffix)  # numba: an index is its version, then its data
+                problem = _pickle_problem(file.read_bytes(), count) if count else None
+                if problem:
+                    damaged[folder] = f"{file.name} is {problem}"
+                    break
+    except OSError as exc:
+        where = exc.filename if exc.filename is not None else root
+        return (f"the numba cache cannot be read: {where} ({exc.strerror or exc}). Delete the folder {root} "
+                f"(`rm -rf '{root}'`) if it is yours, or set AAA_COSIM_NUMBA_CACHE to a folder of your own")
+    if not damaged:
+        return None
+    listing = "; ".join(f"{folder}: {problem}" for folder, problem in list(damaged.items())[:3])
+    if len(damaged) > 3:  # many: the whole cache is the simpler thing to delete
+        listing += f"; and {len(damaged) - 3} more folders"
+        what, command = f"the whole cache folder {root}", f"'{root}'"
+    else:
+        what = "that folder" if len(damaged) == 1 else "those folders"
+        command = " ".join(f"'{folder}'" for folder in damaged)
+    return (f"the numba cache is damaged, and the FMUs would fail to load their kernels from it ({listing}). "
+            f"Delete {what} (`rm -rf {command}`) and run again: the kernels compile again, once")
 
 
 def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
@@ -325,8 +429,17 @@ def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
     fmus = sorted(Path(dest).glob("*.fmu"))
     if not fmus:
         return False
-    digest = hashlib.sha256(b"".join(p.name.encode() + p.read_bytes() for p in fmus)).hexdigest()[:16]
-    root = _numba_cache_root()
+    root = _usable_cache_root()
+    if root is None:
+        return False
+    damage = numba_cache_damage(root)
+    if damage:
+        raise BuildError(damage)
+    try:
+        digest = hashlib.sha256(b"".join(p.name.encode() + p.read_bytes() for p in fmus)).hexdigest()[:16]
+    except OSError as exc:
+        raise BuildError(f"cannot read the FMU {exc.filename} ({exc.strerror or exc}): rebuild the FMUs with "
+                         "`python -m orchestration build`, as a user who may write and read them") from None
     stamp = root / f"warmed-{digest}"
     if stamp.exists():
         return False

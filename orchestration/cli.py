@@ -27,7 +27,7 @@ exit codes:
   0    the run completed (or an FMU ended it with terminateSimulation)
   1    the run failed (an FMU error, a crashed worker, a worker that stopped answering)
   2    a usage error: the scene, an argument, or an --out that cannot be used (read-only, a file in the
-       way, another run using it); nothing ran
+       way, another run using it, files in it that no run wrote, /, ., the project's folder); nothing ran
   130  stopped by Ctrl-C (SIGINT)
   143  stopped by SIGTERM
        The run stops between two steps (status "interrupted"; "completed" if the simulation had already
@@ -43,6 +43,10 @@ never overwritten by a run that did not finish:
 Why beside and not in place: the partial rows are results and are kept, but a Ctrl-C must never cost
 the last complete results. OUT.lock holds the PID of the run using OUT; a second run into the same
 OUT is refused (a lock left by a dead run is taken over).
+A run deletes only what runs wrote: an OUT holding anything else (your notes, an analysis folder) is
+refused before the run, naming what it holds; move those files out or choose another OUT. OUT is a
+folder of its own: not /, not the current folder or one that holds it, not the project's folder. An
+OUT that is a symbolic link is followed: the results replace its target, the link stays.
 """
 
 

@@ -78,3 +78,9 @@ class FmuCallError(OrchestrationError):
 
 class WorkerCrash(FmuCallError):
     """The process hosting the component died; the reason names its exit code or signal."""
+
+
+class FmuBinaryError(OrchestrationError):
+    """An FMU's binary cannot be loaded into a process (truncated, for another machine, missing FMI
+    functions); found by reading it as data before ``dlopen``, which a truncated binary would kill
+    with SIGBUS. The message names the file and the fix (``orchestration.fmi3.BINARY_FIX``)."""

@@ -31,6 +31,7 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import struct
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +39,7 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from .errors import FMI_DISCARD, FMI_ERROR, FMI_FATAL, FMI_OK, FMI_WARNING, FmuCallError
+from .errors import FMI_DISCARD, FMI_ERROR, FMI_FATAL, FMI_OK, FMI_WARNING, FmuBinaryError, FmuCallError
 
 # -- C types ---------------------------------------------------------------------------------------
 c_instance = ctypes.c_void_p
@@ -149,6 +150,147 @@ def _unload(handle: int) -> None:
         dlclose(handle)
 
 
+# -- checking a binary before it is loaded ------------------------------------------------------------
+# dlopen maps an FMU's binary into this process: a truncated one (a copy or download cut short) kills
+# the process with SIGBUS when the loader touches a segment beyond the file's end, before any FMI call
+# could fail, and a binary for another machine fails with a message of the loader's. So a binary is
+# read first, as data (a small ELF reader: header, segments, dynamic symbols), and refused with a
+# message naming the file and the fix.
+
+#: The FMI functions the master calls on every Co-Simulation FMU it hosts; the get/set functions of
+#: the types of its variables come on top (:func:`required_functions`).
+CORE_FUNCTIONS = ("fmi3InstantiateCoSimulation", "fmi3FreeInstance", "fmi3EnterInitializationMode",
+                  "fmi3ExitInitializationMode", "fmi3DoStep", "fmi3Terminate")
+#: What to do about a binary that cannot be loaded (the project's FMUs are built from this checkout).
+BINARY_FIX = ("rebuild the project's FMUs with `python -m orchestration build` (an FMU from elsewhere: get a "
+              "complete copy built for this machine)")
+#: ELF e_machine of each machine name platform.machine() gives (the FMI platform tuple's first part).
+_ELF_MACHINES = {"x86_64": 62, "aarch64": 183, "i386": 3, "i686": 3, "armv7l": 40, "ppc64le": 21, "s390x": 22,
+                 "riscv64": 243}
+#: Platforms whose shared libraries are ELF files (sys.platform prefixes).
+_ELF_PLATFORMS = ("linux", "freebsd", "netbsd", "openbsd")
+_ELF_LAYOUTS = {  # ELF class -> struct formats (after e_ident) of the header, a segment, a section, a symbol
+    1: ("HHIIIIIHHHHHH", "IIIIIIII", "IIIIIIIIII", "IIIBBH"),
+    2: ("HHIQQQIHHHHHH", "IIQQQQQQ", "IIQQQQIIQQ", "IBBHQQ"),
+}
+
+
+def required_functions(ports: Mapping[str, object]) -> tuple[str, ...]:
+    """The FMI functions the master needs of an FMU with ``ports`` (PortInfo: ``type``, ``causality``):
+    the core ones, configuration mode for structural parameters, and the get and set functions of
+    the types of its variables (set only where one can be set)."""
+    needed = list(CORE_FUNCTIONS)
+    writable = ("parameter", "structuralParameter", "input")
+    for port in ports.values():
+        if port.type not in VALUE_TYPES:
+            continue
+        suffix = function_suffix(port.type)
+        needed.append(f"fmi3Get{suffix}")
+        if port.causality in writable:
+            needed.append(f"fmi3Set{suffix}")
+        if port.causality == "structuralParameter":
+            needed += ["fmi3EnterConfigurationMode", "fmi3ExitConfigurationMode"]
+    return tuple(dict.fromkeys(needed))
+
+
+def elf_problem(data: bytes, required: Sequence[str] = ()) -> str | None:
+    """Why the shared library ``data`` cannot be loaded into this process, or None: not ELF, another
+    word size, byte order or machine, not a shared library, truncated (a segment, the section table
+    or the symbol table beyond the end of the data), or ``required`` functions it does not export
+    (checked where it has a section table, as every linker writes one)."""
+    size = len(data)
+    if size < 64:
+        return f"is {size} bytes long, too short for a shared library"
+    if data[:4] != b"\x7fELF":
+        return f"is not an ELF shared library (it starts with {data[:4]!r})"
+    elf_class, encoding = data[4], data[5]
+    bits = 8 * struct.calcsize("P")
+    if elf_class not in _ELF_LAYOUTS or 32 * elf_class != bits:
+        return f"is a {32 * elf_class if elf_class in _ELF_LAYOUTS else '?'}-bit library; this Python is {bits}-bit"
+    order = {1: "<", 2: ">"}.get(encoding)
+    if order is None or {"<": "little", ">": "big"}[order] != sys.byteorder:
+        return f"has the wrong byte order for this machine ({sys.byteorder}-endian)"
+    header, segment, section, symbol = (struct.Struct(order + layout) for layout in _ELF_LAYOUTS[elf_class])
+    (e_type, machine, _, _, phoff, shoff, _, _, phentsize, phnum, shentsize, shnum, _) = header.unpack_from(data, 16)
+    if e_type != 3:  # ET_DYN
+        return f"is not a shared library (ELF type {e_type})"
+    expected = _ELF_MACHINES.get(platform.machine().lower())
+    if expected is not None and machine != expected:
+        return f"is built for another processor (ELF machine {machine}; this machine is {platform.machine()})"
+
+    def beyond(what: str, end: int) -> str:
+        return f"is truncated: its {what} ends at byte {end} but the file has {size} bytes"
+
+    if phentsize != segment.size or phoff + phnum * phentsize > size:
+        return beyond("program header table", phoff + phnum * phentsize)
+    for i in range(phnum):
+        fields = segment.unpack_from(data, phoff + i * phentsize)
+        p_type = fields[0]
+        offset, filesz = (fields[2], fields[5]) if elf_class == 2 else (fields[1], fields[4])
+        if p_type in (1, 2) and offset + filesz > size:  # PT_LOAD, PT_DYNAMIC: what dlopen maps
+            return beyond(f"segment {i}", offset + filesz)
+    if not shnum:
+        return None  # no section table (stripped): the segments are what loading needs
+    if shentsize != section.size or shoff + shnum * shentsize > size:
+        return beyond("section table", shoff + shnum * shentsize)
+    sections = [section.unpack_from(data, shoff + i * shentsize) for i in range(shnum)]
+    for i, (_, sh_type, _, _, offset, length, *_rest) in enumerate(sections):
+        if sh_type != 8 and offset + length > size:  # 8: SHT_NOBITS (.bss) has no bytes in the file
+            return beyond(f"section {i}", offset + length)
+    exported = set()
+    for _, sh_type, _, _, offset, length, link, _, _, entsize in sections:
+        if sh_type != 11 or not entsize or link >= shnum:  # 11: SHT_DYNSYM, its names in section `link`
+            continue
+        names = sections[link]
+        strings = data[names[4]:names[4] + names[5]]
+        for start in range(offset, offset + length - entsize + 1, entsize):
+            fields = symbol.unpack_from(data, start)
+            name, info, other, shndx = (fields[0], fields[1], fields[2], fields[3]) if elf_class == 2 else (
+                fields[0], fields[3], fields[4], fields[5])
+            # defined, global or weak, default or protected visibility: what dlsym finds
+            if shndx and (info >> 4) in (1, 2) and (other & 3) in (0, 3):
+                end = strings.find(b"\0", name)
+                exported.add(strings[name:end if end >= 0 else len(strings)].decode("utf-8", "replace"))
+    missing = [name for name in required if name not in exported]
+    if missing:
+        return f"does not export {', '.join(missing)}, which the master calls"
+    return None
+
+
+def binary_problem(path: Path | str, required: Sequence[str] = ()) -> str | None:
+    """Why the shared library at ``path`` cannot be loaded ("the FMU binary <path> is truncated: ...;
+    <the fix>"), or None; a file that cannot be read is a problem too. Only ELF platforms are
+    checked (Linux and the BSDs)."""
+    if not sys.platform.startswith(_ELF_PLATFORMS):
+        return None  # pragma: no cover - only Linux is built and tested
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        return f"the FMU binary {path} cannot be read ({exc.strerror or exc}); {BINARY_FIX}"
+    problem = elf_problem(data, required)
+    return f"the FMU binary {path} {problem}; {BINARY_FIX}" if problem else None
+
+
+def fmu_binary_problem(fmu: Path | str, model_identifier: str, ports: Mapping[str, object]) -> str | None:
+    """``binary_problem`` of the binary for this machine inside the FMU archive ``fmu`` (what an
+    in-process host would load), or None; read from the archive, nothing is extracted."""
+    import zipfile
+    import zlib
+
+    if not sys.platform.startswith(_ELF_PLATFORMS):
+        return None  # pragma: no cover - only Linux is built and tested
+    member = f"binaries/{platform_tuple()}/{model_identifier}{_library_extension()}"
+    try:
+        with zipfile.ZipFile(fmu) as archive:
+            data = archive.read(member)
+    except KeyError:
+        return f"{fmu} has no binary for this machine ({member}); {BINARY_FIX}"
+    except (OSError, zipfile.BadZipFile, zlib.error, EOFError, ValueError, RuntimeError) as exc:
+        return f"the binary {member} in {fmu} cannot be read ({exc}); {BINARY_FIX}"
+    problem = elf_problem(data, required_functions(ports))
+    return f"the binary {member} in {fmu} {problem}; {BINARY_FIX}" if problem else None
+
+
 class Fmi3Library:
     """The shared library of one extracted FMU with typed FMI 3.0 functions.
 
@@ -156,10 +298,14 @@ class Fmi3Library:
     :class:`FmuCallError` through :meth:`Fmi3Instance.call`.
     """
 
-    def __init__(self, path: Path | str):
+    def __init__(self, path: Path | str, required: Sequence[str] = ()):
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"no FMU binary {self.path} (this machine's platform is {platform_tuple()})")
+        # read as data first: a truncated binary would kill this process (SIGBUS) inside dlopen
+        problem = binary_problem(self.path, required)
+        if problem:
+            raise FmuBinaryError(problem)
         self._dll = ctypes.CDLL(str(self.path))
         self._handle: int | None = self._dll._handle
         self.functions: dict[str, object] = {}
@@ -173,10 +319,11 @@ class Fmi3Library:
             self.functions[name] = function
 
     @classmethod
-    def from_extracted(cls, unzip_dir: Path | str, model_identifier: str) -> Fmi3Library:
-        """The binary of ``model_identifier`` for this platform in an extracted FMU."""
+    def from_extracted(cls, unzip_dir: Path | str, model_identifier: str, required: Sequence[str] = ()) -> Fmi3Library:
+        """The binary of ``model_identifier`` for this platform in an extracted FMU; ``required``:
+        the functions it must export (:func:`required_functions`), else FmuBinaryError."""
         path = Path(unzip_dir) / "binaries" / platform_tuple() / f"{model_identifier}{_library_extension()}"
-        return cls(path)
+        return cls(path, required)
 
     def version(self) -> str:
         function = self.functions.get("fmi3GetVersion")

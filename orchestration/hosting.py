@@ -26,9 +26,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import LOG_LEVELS, FmuCallError
-from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, resource_path,
-                   slot_layout)
+from .errors import LOG_LEVELS, FmuBinaryError, FmuCallError
+from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, required_functions,
+                   resource_path, slot_layout)
 from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 
 logger = logging.getLogger(__name__)
@@ -144,13 +144,19 @@ class InProcessFmu:
         self._unzip_dir = tempfile.mkdtemp(prefix=f"fmu_{self.name}_")
         try:
             extract(str(description.path), self._unzip_dir)
-            self._library = Fmi3Library.from_extracted(self._unzip_dir, description.model_identifier)
+            # checked before it is loaded (Fmi3Library): a truncated binary would kill this process
+            self._library = Fmi3Library.from_extracted(self._unzip_dir, description.model_identifier,
+                                                       required_functions(self.ports))
             self.instance = Fmi3Instance(self._library, self.name, description.instantiation_token,
                                          resource_path(self._unzip_dir), messages=self.messages,
                                          on_message=self._log if self._logger is not None else None)
         except FmuCallError:
             self._release_library()
             raise
+        except FmuBinaryError as exc:  # named by the .fmu the user gave, not by its temporary copy
+            reason = f"{description.path}: {str(exc).replace(self._unzip_dir + '/', '')}"
+            self._release_library()
+            raise FmuCallError(self.name, "loading the FMU binary", None, reason) from None
         except Exception as exc:  # a bad archive, a missing or unloadable binary
             self._release_library()
             raise FmuCallError(self.name, "fmi3InstantiateCoSimulation", None, str(exc)) from None

@@ -19,10 +19,21 @@ Ctrl-C) is reported as "interrupted", with the failure in the error text. Called
 With a :class:`~.outfolder.ResultFolder` (the command line) the run writes into ``<out>.running``
 and the folder is moved into place at the end (see :mod:`.outfolder`); the summary names the
 final folder.
+
+A run that lost results never ends "completed": results that cannot be kept (a full or read-only
+volume, a file-size limit, the results folder deleted under the run) end the run as soon as the
+recorder finds them, status "failed" (the project's statuses: :data:`.summary.STATUSES`), and
+whatever is missing at the end (rows, frames a writer process could not write, files gone, a
+``summary.json`` that could not be written) is listed in the summary's ``lost`` and named in its
+error, with the path and what was kept; a run stopped by Ctrl-C or SIGTERM stays "interrupted"
+and says the same. Writing the summary and moving the folder into place are attempted whatever
+the volume does: what cannot be done is said, never a traceback.
 """
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 import time
 from fractions import Fraction
 from pathlib import Path
@@ -32,6 +43,7 @@ import numpy as np
 from .algorithm import MultirateAlgorithm, RunInterrupted, RunTerminated, tick_base  # noqa: F401 (re-exported)
 from .errors import OrchestrationError
 from .observers import Progress, RealtimePacing, Recording, Statistics
+from .outfolder import COMPLETE_STATUSES  # the statuses whose results are complete; a loss makes them "failed"
 from .scene import ComponentSpec, Scene, duration_problem, float_time
 from .stopping import stop_signals
 from .summary import fmu_messages, format_summary
@@ -105,18 +117,22 @@ class Simulation:
 
     # -- the run -----------------------------------------------------------------------------------
     def run(self) -> dict:
+        _ignore_file_size_signal()
         with stop_signals() as stop:
             return self._run(stop)
 
     def _run(self, stop) -> dict:
-        from .recording import write_summary
+        from .recording import reserve_summary_space
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        reserve_summary_space(self.out_dir)  # a volume the rows fill up still takes the summary that says so
         recording = Recording(self.scene, self.out_dir, surfaces=self.write_vtu)
         statistics = Statistics(self.scene)
         pacing = RealtimePacing() if self.realtime else None
         progress = Progress(self.scene, self.duration, enabled=self.progress)
-        observers = [o for o in (recording, statistics, pacing, progress) if o is not None]
+        _watch_helpers(recording, self.scene.worker_timeout)
+        losses_watch = _LossWatch(recording)
+        observers = [o for o in (recording, statistics, pacing, progress, losses_watch) if o is not None]
         algorithm = MultirateAlgorithm(self.scene, self.duration, self._make_host, observers, self.extra_observed,
                                        compiled_loop=self.compiled_loop)
         self.algorithm = algorithm
@@ -153,13 +169,21 @@ class Simulation:
             self.final_outputs = algorithm.keep_outputs()
             recording.close()
             messages = algorithm.teardown()
-        final_dir = self.folder.destination(status) if self.folder is not None else self.out_dir
+        losses = list(recording.recorder.losses) if recording.recorder is not None else []
+        if losses_watch.first is not None and not losses:  # told during the run, not found at the end
+            losses.append(losses_watch.first)
+        if losses:
+            status, error = _account_for_losses(status, error, losses, stopped_by_user=stop.requested)
         summary = self._summary(algorithm, status, error, wall, setup_time, statistics, pacing, recording, messages)
+        if losses:
+            summary["lost"] = losses
         if stop.requested:
             summary["stop_request"] = stop.reason
         if self.make_plots and self.scene.plots and recording.recorder is not None:
             if stop.requested:  # the user wants out: the CSVs hold everything a figure would show
                 summary["results"]["plots"] = "skipped (stop requested)"
+            elif losses:  # a figure of rows with a gap would mislead, and the volume may refuse it
+                summary["results"]["plots"] = "skipped (results lost)"
             else:
                 try:
                     from .plots import plot_signals
@@ -167,15 +191,43 @@ class Simulation:
                     summary["results"]["plots"] = [str(p) for p in plot_signals(self.out_dir, self.scene.plots)]
                 except Exception as exc:  # plots are a convenience: never lose the summary over them
                     logger.warning("plots failed: %s", exc)
-        if final_dir != self.out_dir:
-            _relocate(summary["results"], self.out_dir, final_dir)
-        write_summary(self.out_dir, summary)
-        if self.folder is not None:
-            self.folder.publish(status)
+        final_dir = self._save(summary)
+        summary = _relocated(summary, self.out_dir, final_dir)
         self.results_dir = final_dir
         stop.unlisten(on_stop)
         self.summary_text = self.format(summary)
         return summary
+
+    def _save(self, summary: dict) -> Path:
+        """Write ``summary.json`` and move the results into place (``summary`` as the run ended, its
+        paths in the folder written to); return where the results are. A volume that refuses either
+        (full, read-only, the folder deleted) is said in the summary and the log and makes the run
+        "failed" (its status and error are updated here), never a traceback."""
+        from .recording import io_problem, write_summary
+
+        final_dir = self.folder.destination(summary["status"]) if self.folder is not None else self.out_dir
+        try:
+            write_summary(self.out_dir, _relocated(summary, self.out_dir, final_dir))
+        except OSError as exc:
+            problem = f"{self.out_dir / 'summary.json'} could not be written ({io_problem(exc)})"
+            logger.error("%s", problem)
+            _add_loss(summary, problem)
+            final_dir = self.folder.destination(summary["status"]) if self.folder is not None else self.out_dir
+        if self.folder is None:
+            return final_dir
+        try:
+            self.folder.publish(summary["status"])
+        except OSError as exc:
+            problem = (f"the results could not be moved from {self.out_dir} to {final_dir} ({io_problem(exc)}); "
+                       f"they stay in {self.out_dir}")
+            logger.error("%s", problem)
+            _add_loss(summary, problem)
+            final_dir = self.out_dir
+            try:  # the summary there says so, if the volume lets it
+                write_summary(self.out_dir, summary)
+            except OSError:
+                pass
+        return final_dir
 
     def format(self, summary: dict) -> str:
         """The readable summary printed after a run (summary.json has everything)."""
@@ -216,15 +268,96 @@ class Simulation:
         return summary
 
 
-def _relocate(results: dict, old: Path, new: Path) -> None:
-    """Rewrite the paths in the summary's ``results`` from the folder written to the final one."""
+def _loss_text(losses: list[str]) -> str:
+    more = f" (and {len(losses) - 1} more; summary.json lists them under 'lost')" if len(losses) > 1 else ""
+    return f"results lost: {losses[0]}{more}"
+
+
+def _account_for_losses(status: str, error: str | None, losses: list[str], stopped_by_user: bool):
+    """The status and error of a run that lost results: never "completed"; "failed" unless the user
+    stopped it ("interrupted" stays, and says what was lost too)."""
+    text = _loss_text(losses)
+    if status in COMPLETE_STATUSES:
+        return "failed", text if status == "completed" else f"{text}; {error}"
+    if status == "interrupted" and not stopped_by_user:  # the recorder's stop: the run ended over the loss
+        return "failed", text
+    return status, f"{error}; {text}" if error else text
+
+
+def _add_loss(summary: dict, problem: str) -> None:
+    """One more thing the run could not keep (the summary, the folder's move), found at the very end."""
+    summary.setdefault("lost", []).append(problem)
+    if summary["status"] in COMPLETE_STATUSES:
+        summary["status"] = "failed"
+        summary["error"] = _loss_text(summary["lost"])
+    else:
+        summary["error"] = f"{summary['error']}; {problem}" if summary["error"] else problem
+
+
+class _LossWatch:
+    """An observer that ends the run as soon as the recorder finds results lost (a write failed, the
+    results folder was deleted): whatever the run computes from then on could not be kept."""
+
+    def __init__(self, recording: Recording):
+        self.recording = recording
+        #: the first loss, as the recorder told it (None: none so far)
+        self.first: str | None = None
+
+    def initializing(self, algorithm) -> None:
+        recorder = self.recording.recorder  # made by the Recording observer just before
+        if recorder is None:
+            return
+
+        def lost(text: str) -> None:  # from the recorder's threads: flags only
+            if self.first is None:
+                self.first = text
+                algorithm.request_stop(f"results lost: {text}", max(1, algorithm.stop_level))
+
+        recorder.on_loss = lost
+
+
+def _watch_helpers(recording: Recording, worker_timeout: float | None) -> None:
+    """The writer processes get the workers' deadline: the scene's ``worker_timeout`` when it sets
+    one (else their automatic one, see :mod:`.helper_process`)."""
+    if worker_timeout is None:
+        return
+    for writer in recording.writers:
+        helper = getattr(writer, "helper", None)
+        if helper is not None:
+            helper.timeout = float(worker_timeout)
+
+
+def _ignore_file_size_signal() -> None:
+    """A write past the file-size limit (``ulimit -f``) must fail with EFBIG, which the recorder
+    reports, not kill the run with SIGXFSZ. Python ignores it at start-up; a program that embeds
+    Python may not (only the main thread may change it)."""
+    if (hasattr(signal, "SIGXFSZ") and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGXFSZ) == signal.SIG_DFL):
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+
+def _relocated(summary: dict, old: Path, new: Path) -> dict:
+    """``summary`` with the paths in its ``results`` and its messages moved from the folder written
+    to (``old``) to the final one (a copy; the same dict when they are the same)."""
+    if old == new:
+        return summary
     old_text, new_text = str(old), str(new)
-    for key, value in results.items():
-        if isinstance(value, str) and (value == old_text or value.startswith(old_text + "/")):
-            results[key] = new_text + value[len(old_text):]
-        elif isinstance(value, list):
-            results[key] = [new_text + v[len(old_text):] if isinstance(v, str) and v.startswith(old_text + "/") else v
-                            for v in value]
+
+    def move(value):
+        if isinstance(value, str):
+            if value == old_text or value.startswith(old_text + "/"):
+                return new_text + value[len(old_text):]
+            return value.replace(old_text + "/", new_text + "/")
+        if isinstance(value, list):
+            return [move(v) for v in value]
+        return value
+
+    moved = dict(summary)
+    moved["results"] = {key: move(value) for key, value in summary["results"].items()}
+    for key in ("error", "lost"):
+        if key in moved:
+            moved[key] = move(moved[key])
+    return moved
 
 
 def run_scene(scene: Scene, out_dir, **kwargs) -> tuple[dict, str]:

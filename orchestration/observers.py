@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .blocks import PLANT_MAX_POSITION, PLANT_MAX_SPEED
 from .scene import Scene
 
 logger = logging.getLogger(__name__)
@@ -109,13 +110,77 @@ class Recording:
         return self.recorder.row_errors if self.recorder is not None else []
 
     @property
+    def writers(self) -> list:
+        """The run's writer processes that were started (surface writer, row writer)."""
+        return [writer for writer in (self._surface_writer, self._row_writer) if writer is not None]
+
+    @property
     def processes(self) -> dict[str, int]:
         """Helper processes of the run by name (the writers), for the real-time pacing."""
-        return {writer.label: writer.pid for writer in (self._surface_writer, self._row_writer) if writer is not None}
+        return {writer.label: writer.pid for writer in self.writers}
 
     @property
     def files(self) -> dict:
         return self.recorder.files if self.recorder is not None else {}
+
+
+# -- physical plausibility of the outputs ------------------------------------------------------------
+#: The plausible magnitude of a run's outputs, by unit: every value of a Float output of a stepped
+#: component (an FMU or a block such as the device plant) lies within +-bound, or the run's summary
+#: warns ("warnings", "implausible_outputs"): a value beyond it is a model that diverged, a unit slip
+#: or a force far beyond the scene's, not a result. An output whose FMU declares min/max in its
+#: modelDescription.xml (from its limit table, FmuDeclaration.limits) is held to that range instead;
+#: one without it is also held to the range of each input it feeds (the consumer's limit table is the
+#: contract, e.g. Tissue's compliance to Contact's). Outputs in other units that feed no such input
+#: are not checked. The one table of these bounds.
+PLAUSIBLE_MAGNITUDE: dict[str, tuple[float, str]] = {
+    "m": (PLANT_MAX_POSITION, "positions and lengths: the body, the vessel and a device's workspace (about 0.2 m) "
+                              "lie within metres of the origin; a device plant starting beyond it is refused too"),
+    "m/s": (PLANT_MAX_SPEED, "speeds: a hand, a device or a wall moves at centimetres to metres per second"),
+    "N": (1e4, "forces: 10 kN is 1000 times what a catheter or a haptic device applies; the FMUs refuse a force "
+               "input beyond it"),
+    "J": (1e5, "energies: the work of 10 kN over 10 m"),
+    "N/m": (1e9, "stiffnesses: the Catheter refuses a tip stiffness beyond it"),
+    "rad": (1e6, "angles: the Catheter refuses a rotation beyond 1e6 rad (160k turns)"),
+}
+#: Outputs of up to this many values are checked at every step; larger ones (a tissue's surface, its
+#: nodal forces: thousands of values each step) at the end of the run, where the run reads them.
+PLAUSIBILITY_STEP_VALUES = 1024
+
+
+def _declared(port) -> tuple[float, float] | None:
+    if port.minimum is None and port.maximum is None:
+        return None
+    return (-math.inf if port.minimum is None else float(port.minimum),
+            math.inf if port.maximum is None else float(port.maximum))
+
+
+def plausible_range(port, consumers=()) -> tuple[float, float, str] | None:
+    """``(low, high, why)`` bounding every value of the output ``port`` (a PortInfo), or None when
+    nothing bounds it: its declared min/max, else the declared ranges of the inputs it feeds
+    (``consumers``: ``(name, PortInfo)``) and PLAUSIBLE_MAGNITUDE of its unit, all of them."""
+    if port.causality != "output" or port.type not in ("Float64", "Float32"):
+        return None
+    declared = _declared(port)
+    if declared is not None:
+        return (*declared, "the range its FMU declares for it (min/max in its modelDescription.xml)")
+    # each bound that applies, as (low, high, why): the output must keep within all of them
+    bounds = [(*_declared(target), f"the range {name} accepts (min/max in its FMU's modelDescription.xml)")
+              for name, target in consumers if _declared(target) is not None]
+    magnitude = PLAUSIBLE_MAGNITUDE.get(port.unit)
+    if magnitude is not None:
+        bounds.append((-magnitude[0], magnitude[0], magnitude[1]))
+    if not bounds:
+        return None
+    narrowest = min(bounds, key=lambda b: b[1] - b[0])
+    return max(b[0] for b in bounds), min(b[1] for b in bounds), narrowest[2]
+
+
+def _excess(value: float, low: float, high: float) -> float:
+    """How far ``value`` lies outside [low, high] (inf for NaN: nothing is further)."""
+    if value != value:
+        return math.inf
+    return max(low - value, value - high)
 
 
 #: Blocks of steps at least this long (a compiled stretch's) are folded into the statistics in numpy;
@@ -124,7 +189,10 @@ BLOCK_FOLD_ROWS = 8
 
 
 class Statistics:
-    """Peaks, energies and operator warnings named in the scene's ``[summary]``."""
+    """Peaks, energies and operator warnings named in the scene's ``[summary]``, and the physical
+    plausibility of every stepped component's outputs (:data:`PLAUSIBLE_MAGNITUDE`): an output
+    beyond its range is counted in ``implausible_outputs`` and makes a line of the summary's
+    ``warnings`` (and of the log), so that such a run never reads as a clean "completed"."""
 
     def __init__(self, scene: Scene):
         summary = scene.summary
@@ -136,21 +204,63 @@ class Statistics:
             for ref in summary.get(kind, []):
                 comp, port = ref.split(".")
                 self.by_component.setdefault(comp, []).append((kind, port, ref))
+        #: per component, its outputs checked at every step / at the end: (port, ref, low, high)
+        self.checks: dict[str, list[tuple[str, str, float, float]]] = {}
+        self.final_checks: dict[str, list[tuple[str, str, float, float]]] = {}
+        #: ref -> (low, high, why, unit) of every checked output
+        self.ranges: dict[str, tuple[float, float, str, str | None]] = {}
+        #: ref -> what left its range: steps, first_s, worst value (and its excess, internal)
+        self.implausible: dict[str, dict] = {}
+        components = getattr(scene, "components", {})
+        consumers: dict[tuple[str, str], list] = {}
+        for c in getattr(scene, "connections", ()):
+            target = components.get(c.target)
+            port = target.ports.get(c.target_port) if target is not None else None
+            if port is not None:
+                consumers.setdefault((c.source, c.source_port), []).append((f"{c.target}.{c.target_port}", port))
+        for spec in components.values():
+            if spec.is_continuous:  # a source's values are the scene's own, checked when it is loaded
+                continue
+            for port in spec.ports.values():
+                bounds = plausible_range(port, consumers.get((spec.name, port.name), ()))
+                if bounds is None:
+                    continue
+                ref = f"{spec.name}.{port.name}"
+                self.ranges[ref] = (*bounds, port.unit)
+                every_step = port.size <= PLAUSIBILITY_STEP_VALUES
+                (self.checks if every_step else self.final_checks).setdefault(spec.name, []).append(
+                    (port.name, ref, bounds[0], bounds[1]))
 
     def ports(self, component: str) -> list[str]:
-        return [port for _, port, _ in self.by_component.get(component, [])]
+        names = [port for _, port, _ in self.by_component.get(component, [])]
+        names += [port for port, *_ in self.checks.get(component, [])]
+        return list(dict.fromkeys(names))
 
     def initializing(self, algorithm) -> None:
         self.seconds = algorithm.seconds
 
     def stepped(self, comp, tick: int, outputs) -> None:
-        for kind, port, ref in self.by_component[comp.name]:
+        for kind, port, ref in self.by_component.get(comp.name, ()):
             # plain floats: cheaper than numpy for a few values
             self._take(kind, ref, comp.step, (tick,), (outputs[port].tolist(),))
+        for port, ref, low, high in self.checks.get(comp.name, ()):
+            values = outputs[port]
+            if values.size <= 16:  # plain floats again; a NaN makes the sum NaN (min and max may miss it)
+                row = values.tolist()
+                total = sum(row)
+                if total == total and low <= min(row) and max(row) <= high:
+                    continue
+            elif low <= values.min() and values.max() <= high:  # numpy's min and max are NaN for a NaN
+                continue
+            self._fold_implausible(ref, low, high, (tick,), np.asarray(values, dtype=np.float64).reshape(1, -1))
 
     def stepped_block(self, comp, ticks: list[int], outputs: dict[str, np.ndarray], first_step: int) -> None:
         """``stepped`` for steps ending at ``ticks``; ``outputs[port]`` has a row per step."""
-        for kind, port, ref in self.by_component[comp.name]:
+        for port, ref, low, high in self.checks.get(comp.name, ()):
+            rows = outputs[port]
+            if not (low <= rows.min() and rows.max() <= high):
+                self._fold_implausible(ref, low, high, ticks, np.asarray(rows, dtype=np.float64))
+        for kind, port, ref in self.by_component.get(comp.name, ()):
             rows = outputs[port]
             if len(ticks) < BLOCK_FOLD_ROWS or not np.isfinite(rows).all():
                 self._take(kind, ref, comp.step, ticks, rows.tolist())
@@ -237,6 +347,57 @@ class Statistics:
             w["_on_steps"] += int(np.count_nonzero(on & (np.asarray(ticks) != 0)))
             w["_on"] = bool(on[-1])
 
+    def _fold_implausible(self, ref: str, low: float, high: float, ticks, rows: np.ndarray) -> None:
+        """Count the rows (one per tick) of ``ref`` with a value outside [low, high]; keep the first
+        time and the value furthest out (a NaN before all: nothing is further), the first of equals."""
+        with np.errstate(invalid="ignore"):
+            excess = np.maximum(low - rows, rows - high)
+        excess[np.isnan(excess)] = math.inf
+        bad = (excess > 0).any(axis=1)
+        count = int(np.count_nonzero(bad))
+        if not count:
+            return
+        worst = int(np.argmax(excess))  # row-major: the earliest step, then the first value
+        entry = self.implausible.get(ref)
+        if entry is None:
+            entry = self.implausible[ref] = {"steps": 0, "first_s": self.seconds(ticks[int(np.argmax(bad))]),
+                                             "worst": None, "_excess": -math.inf}
+        entry["steps"] += count
+        if excess.flat[worst] > entry["_excess"]:
+            entry["_excess"], entry["worst"] = float(excess.flat[worst]), float(rows.flat[worst])
+
+    def finished(self, algorithm) -> None:
+        """The outputs too large to check at every step, as the run ends (those the run read); then
+        each implausible output is logged. Never raises: the run's summary comes next."""
+        if not hasattr(self, "seconds"):  # the run ended before it initialized
+            return
+        try:
+            for comp in algorithm.ordered:
+                for port, ref, low, high in self.final_checks.get(comp.name, ()):
+                    values = comp.outputs.get(port)
+                    if values is None:
+                        continue
+                    row = np.asarray(values, dtype=np.float64).reshape(1, -1)
+                    if not (low <= row.min() and row.max() <= high):
+                        self._fold_implausible(ref, low, high, (comp.time,), row)
+        except Exception as exc:  # a host that went away with its buffers: the check is a courtesy
+            logger.warning("checking the final outputs' plausibility failed: %s", exc)
+        for text in self.plausibility_warnings():
+            logger.warning("%s", text)
+
+    def plausibility_warnings(self) -> list[str]:
+        """A line for each output that left its plausible range, the earliest first."""
+        lines = []
+        for ref, entry in sorted(self.implausible.items(), key=lambda item: (item[1]["first_s"], item[0])):
+            low, high, why, unit = self.ranges[ref]
+            unit = f" {unit}" if unit else ""
+            worst = entry["worst"]
+            worst = "NaN" if worst != worst else f"{worst:.6g}{unit}"
+            lines.append(f"{ref} left its plausible range [{low:g}, {high:g}]{unit} at t = {entry['first_s']:.6g} s "
+                         f"({entry['steps']} step(s), {worst} at worst; {why}): its results from then on are not "
+                         "physical; check the scene's forces, parameters and units")
+        return lines
+
     def _warning(self, ref: str, step: int) -> dict:
         w = self.warnings.get(ref)
         if w is None:
@@ -254,6 +415,20 @@ class Statistics:
             out["operator_warnings"] = {ref: {"count": w["count"], "time_on_s": w["_on_steps"] * w["_step_s"],
                                               "first_s": w["first_s"]}
                                         for ref, w in self.warnings.items()}
+        if self.ranges:
+            def number(x: float):  # JSON has no NaN or infinity
+                return x if math.isfinite(x) else (None if x != x else str(x))
+
+            out["implausible_outputs"] = {
+                "count": len(self.implausible), "checked": len(self.ranges),
+                "outputs": {ref: {"steps": e["steps"], "first_s": e["first_s"], "worst": number(e["worst"]),
+                                  "range": [number(self.ranges[ref][0]), number(self.ranges[ref][1])],
+                                  "unit": self.ranges[ref][3]}
+                            for ref, e in sorted(self.implausible.items(), key=lambda item: (item[1]["first_s"],
+                                                                                               item[0]))}}
+            warnings = self.plausibility_warnings()
+            if warnings:
+                out["warnings"] = warnings
         return out
 
 

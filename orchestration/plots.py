@@ -29,6 +29,11 @@ def _load_units(out_dir: Path) -> dict:
 def _check_figure(index: int, figure) -> None:
     if not isinstance(figure, dict) or not isinstance(figure.get("file"), str) or not figure["file"]:
         raise RecordingError(f"figure {index}: needs a 'file' name such as 'forces.png' (got {figure!r})")
+    file = figure["file"]
+    if any(c in file for c in "/\\\0") or file.startswith(".") or not file.lower().endswith(".png"):
+        # anything else could overwrite another result in the folder (units.json, a CSV) or leave it
+        raise RecordingError(f"figure {index}: file {file!r} is not a plain .png file name in the result folder "
+                             "(e.g. 'forces.png')")
     panels = figure.get("panels")
     if not isinstance(panels, list) or not panels:
         raise RecordingError(f"figure {figure['file']!r}: 'panels' must be a non-empty list of "
@@ -84,12 +89,25 @@ def plot_signals(out_dir: Path | str, figures: list[dict]) -> list[Path]:
     from matplotlib.figure import Figure
 
     out_dir = Path(out_dir)
+    files: dict[str, int] = {}
     for index, figure in enumerate(figures):
         _check_figure(index, figure)
+        # Two figures into one file: the second would overwrite the first without a word.
+        # Compared without case: many file systems do not tell Forces.png from forces.png.
+        first = files.setdefault(figure["file"].casefold(), index)
+        if first != index:
+            raise RecordingError(f"figure {index} ({figure['file']!r}): figure {first} is drawn into the same file; "
+                                 "give each figure a file of its own")
     units = _load_units(out_dir)
     streams: dict = {}
     written = []
     for spec in figures:
+        path = out_dir / spec["file"]
+        if path.is_symlink() or (path.exists() and not path.is_file()):
+            # another result (a surface's frame folder) has that name: keep it, draw the others
+            log.warning("%s: not drawn, %s is already something else (a folder?); give the figure another file name",
+                        spec["file"], path)
+            continue
         panels = spec["panels"]
         fig = Figure(figsize=(9, 2.4 * len(panels) + 0.8), layout="constrained")
         FigureCanvasAgg(fig)
@@ -111,7 +129,6 @@ def plot_signals(out_dir: Path | str, figures: list[dict]) -> list[Path]:
         axes[-1].set_xlabel("time (s)")
         if spec.get("title"):
             fig.suptitle(spec["title"])
-        path = out_dir / spec["file"]
         fig.savefig(path, format="png", dpi=100)
         written.append(path)
         log.debug("plot written: %s", path)

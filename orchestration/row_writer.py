@@ -13,9 +13,16 @@ the recorder to write the rows itself from then on, so only the rows the writer 
 yet written are missing, and the run's summary says so. Unlike the surface writer it runs
 at normal priority: the rows of a run that is still going reach the disk within the recorder's
 flush interval (about 2 % of one CPU for the default scene).
+
+A block that cannot be written (a full volume, a read-only one, a file-size limit) leaves no part
+of a row behind: the file is cut back to where the block began (:func:`append_lines`), the writer
+tells the run at once which file, why and how many rows it keeps (a notice, see
+:func:`~.helper_process.serve`), and writes nothing more to that file, so it stays a complete
+prefix of the run's rows.
 """
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -25,6 +32,8 @@ from .helper_process import HelperProcess, begin_helper, serve
 LABEL = "row writer"
 
 _float_repr = float.__repr__  # exact shortest round-trip text
+
+log = logging.getLogger(__name__)
 
 
 def format_rows(values: list[float], n_values: int) -> str:
@@ -41,6 +50,27 @@ def write_all(fd: int, data: bytes) -> None:
     view = memoryview(data)
     while view:
         view = view[os.write(fd, view):]
+
+
+def append_lines(fd: int, data: bytes) -> None:
+    """Append ``data`` (whole lines) to the file open at ``fd``: all of it, or, when a write fails
+    (OSError), none of it: the file is cut back to where it was, so that a full volume or a
+    file-size limit (EFBIG) never leaves part of a row. A file that cannot be cut back (a
+    read-only volume) keeps the part; readers skip a truncated last line."""
+    start = os.lseek(fd, 0, os.SEEK_END)  # appended writes go to the end: this is where they begin
+    try:
+        write_all(fd, data)
+    except OSError:
+        try:
+            os.ftruncate(fd, start)
+        except OSError as exc:
+            log.warning("could not cut a partly written block of rows back (%s): the file ends in a part of a row",
+                        exc.strerror or exc)
+        raise
+
+
+class RowsNotWritten(Exception):
+    """A block of rows was not written: an earlier block to the same file had failed."""
 
 
 class RowWriter:
@@ -74,23 +104,68 @@ class RowWriter:
         """Wait until every block sent is written; the writer's errors, if any. Idempotent."""
         return self._helper.close("row")
 
+    @property
+    def helper(self) -> HelperProcess:
+        """The process: its deadline (``timeout``), its notices (``on_notice``, ``poll``)."""
+        return self._helper
+
+
+class _Stream:
+    """One file the writer appends to, and what it has written there."""
+
+    __slots__ = ("path", "fd", "n_values", "rows", "last_time", "failed")
+
+    def __init__(self, path: str, fd: int, n_values: int):
+        self.path = path
+        self.fd = fd
+        self.n_values = n_values
+        self.rows = 0                    # rows this writer has appended
+        self.last_time: float | None = None
+        self.failed: str | None = None   # why nothing more is written to the file
+
 
 def _serve(conn) -> None:
     """The writer's loop: blocks in the order sent, until "close" or until the run's process is gone."""
     begin_helper(LABEL)
-    streams: dict[str, tuple[int, int]] = {}  # name -> (fd, n_values)
+    streams: dict[str, _Stream] = {}
 
     def handle(message: tuple) -> None:
         if message[0] == "stream":
             _, name, path, n_values = message
-            streams[name] = (os.open(path, os.O_WRONLY | os.O_APPEND), n_values)
-        else:
-            _, name, rows = message
-            fd, n_values = streams[name]
-            write_all(fd, format_rows(memoryview(rows).cast("d").tolist(), n_values).encode("ascii"))
+            try:
+                fd = os.open(path, os.O_WRONLY | os.O_APPEND)
+            except OSError as exc:
+                streams[name] = stream = _Stream(path, -1, n_values)
+                stream.failed = f"it could not be opened ({exc.strerror or exc})"
+                exc.notice = _notice(stream, exc)
+                raise
+            streams[name] = _Stream(path, fd, n_values)
+            return
+        _, name, rows = message
+        stream = streams[name]
+        values = memoryview(rows).cast("d")
+        count = len(values) // stream.n_values
+        if stream.failed is not None:
+            raise RowsNotWritten(f"{count} rows not written to {stream.path}: {stream.failed}")
+        try:
+            append_lines(stream.fd, format_rows(values.tolist(), stream.n_values).encode("ascii"))
+        except OSError as exc:
+            stream.failed = f"a write failed earlier ({exc.strerror or exc})"
+            exc.notice = _notice(stream, exc)
+            raise
+        if count:
+            stream.rows += count
+            stream.last_time = values[(count - 1) * stream.n_values]
 
     try:
         serve(conn, LABEL, handle)
     finally:
-        for fd, _ in streams.values():
-            os.close(fd)
+        for stream in streams.values():
+            if stream.fd >= 0:
+                os.close(stream.fd)
+
+
+def _notice(stream: _Stream, exc: OSError) -> dict:
+    """What the run is told when a file cannot be written: which, why, and what it keeps."""
+    return {"kind": "rows", "path": stream.path, "errno": exc.errno, "reason": exc.strerror or str(exc),
+            "rows_kept": stream.rows, "last_time": stream.last_time}

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from . import transitions as tr
+from .fmi3 import fmu_binary_problem
 from .ports import (INTEGER_RANGES, MAX_PORT_VALUES, NUMERIC_TYPES, READABLE, WRITABLE, FmuDescription, PortInfo,
                     conversion_problem, parse_binary, read_fmu)
 
@@ -65,7 +66,9 @@ MAX_STEP = Fraction(1)
 MAX_RUN_STEPS = 10_000_000
 #: The deepest nesting of tables and lists a scene may have. The format nests at most 5 levels
 #: ([record] plots, panels, series, a table); far deeper nesting is no scene, and would exhaust
-#: the interpreter's recursion limit (the TOML parser's, and ours) with a RecursionError.
+#: the interpreter's recursion limit (the TOML parser's, and ours) with a RecursionError, or (dotted
+#: keys) the parser's memory. Checked on the text before parsing (``_nesting_problem``) and on the
+#: parsed tree (``_too_deep``: scene_from_dict is also given trees that never were text).
 MAX_NESTING = 32
 
 #: A scene name names its result folder (results/<name>): a plain name, never a path.
@@ -338,6 +341,9 @@ def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
                                 "TOML files are UTF-8; save the file as UTF-8"]) from None
     except OSError as exc:
         raise SceneError(path, [f"cannot read the file: {exc.strerror or exc}"]) from None
+    deep = _nesting_problem(text)  # before the parser, which deep nesting makes recurse or grow as n**2
+    if deep is not None:
+        raise SceneError(path, [deep])
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -361,6 +367,116 @@ def _too_deep(data) -> str | None:
         elif isinstance(node, list):
             stack.extend((v, f"{where}[{i}]", depth + 1) for i, v in enumerate(node))
     return None
+
+
+#: The tokens of TOML text that matter to its nesting: strings (skipped whole: their content is not
+#: structure), comments, line ends, brackets, braces, '=', ',' and '.'; anything else is a bare
+#: word (a key part or a scalar). An unterminated string runs to the end of its line (a multi-line
+#: one to the end of the text), as far as the parser would read it.
+_TOML_TOKEN = re.compile("|".join((
+    r'(?P<string>"""(?:[^"\\]|\\.|"(?!""))*(?:"""(?:"{1,2}(?!"))?)?',      # """multi-line basic"""
+    r"'''(?:[^']|'(?!''))*(?:'''(?:'{1,2}(?!'))?)?",                       # '''multi-line literal'''
+    r'"(?:[^"\\\n]|\\.)*"?',                                               # "basic"
+    r"'[^'\n]*'?)",                                                        # 'literal'
+    r"(?P<skip>\#[^\n]*|[ \t\r]+)",                                        # comments, blanks
+    r"(?P<newline>\n)",
+    r"(?P<mark>[\[\]{}=,.])",
+    r"(?P<word>[^\s\[\]{}=,.#\"']+)",
+)), re.DOTALL)
+
+
+def _toml_depth(text: str, limit: int) -> tuple[int, int]:
+    """(depth, offset): the first place TOML ``text`` nests deeper than ``limit`` levels, or the
+    deepest nesting it has (offset -1).
+
+    Depth as ``_too_deep`` counts it in the parsed tree (a top-level value is at 1): a key of n
+    parts lies n levels below its table (dotted keys in a [table.header] and in { inline tables }
+    too), an array's items one level below the array, the items of an [[array.of.tables]] one
+    below its name. One pass over the tokens, linear in the text and never recursive; for valid
+    TOML it is the parsed depth, for invalid TOML an estimate (the parser then reports the error).
+    """
+    stack: list[tuple[str, int]] = []   # open arrays and inline tables: ("[", its items' depth) or ("{", its own)
+    state = "key"                       # "key" (reading one), "value" (expecting one), "after" (one ended)
+    table = base = dots = 0             # the current [table]'s depth; the depth being read; a key's dots
+    header = None                       # inside [a.b] / [[a.b]]: its key parts so far
+    arrays: set[tuple[str, ...]] = set()  # the [[arrays.of.tables]] seen
+    statement_start = True              # a '[' here opens a table header, not an array
+    deepest = 0
+    for match in _TOML_TOKEN.finditer(text):
+        kind, token = match.lastgroup, match.group()
+        if kind == "skip":
+            continue
+        if kind == "newline":
+            if not stack and header is None:  # inside an array, items go on over lines
+                state, base, dots, statement_start = "key", table, 0, True
+            continue
+        depth = 0
+        if header is not None:          # [a.b] or [[a.b]]: its key parts so far in `header`
+            if token == "[" and not header and not array_of_tables:
+                array_of_tables = True
+            elif token == "]":
+                # Each array of tables on the path adds a level: [[a]] then [a.b] puts b in a's last item.
+                path = tuple(header)
+                if array_of_tables:
+                    arrays.add(path)
+                table = len(path) + sum(path[:i] in arrays for i in range(1, len(path) + 1))
+                depth, header, state = table, None, "after"
+            elif token != ".":
+                header.append(token.strip("\"'") if kind == "string" else token)
+            if header is not None:
+                depth = len(header)
+        elif state == "key":
+            if token == "[" and statement_start and not stack:
+                header, array_of_tables = [], False
+            elif token == ".":
+                dots += 1
+                depth = base + dots + 1
+            elif token == "=":
+                base += dots + 1
+                depth, state = base, "value"
+            elif token == "}" and stack and stack[-1][0] == "{":   # {} or a trailing comma
+                stack.pop()
+                state = "after"
+            statement_start = False
+        elif state == "value":
+            depth = base if token != "]" else 0
+            if token == "[":
+                base += 1
+                stack.append(("[", base))
+            elif token == "{":
+                stack.append(("{", base))
+                state, dots = "key", 0
+            elif token == "]" and stack and stack[-1][0] == "[":   # [] or a trailing comma
+                stack.pop()
+                state = "after"
+            else:                       # a scalar (or something the parser will refuse)
+                state = "after"
+        elif token == "," and stack:    # "after" a value: the next item or key
+            bracket, base = stack[-1]
+            state, dots = ("value" if bracket == "[" else "key"), 0
+        elif token in ("]", "}") and stack and stack[-1][0] == ("[" if token == "]" else "{"):
+            stack.pop()
+        if depth > deepest:
+            deepest = depth
+            if depth > limit:
+                return depth, match.start()
+    return deepest, -1
+
+
+def _nesting_problem(text: str) -> str | None:
+    """Why TOML ``text`` nests too deeply to be a scene (a problem for SceneError), or None.
+
+    Checked before the TOML parser runs, because the parser itself is the danger: it recurses once
+    per nested bracket or brace (a RecursionError), and a dotted key ``x.x.x... = 1`` of n parts
+    costs it memory and time growing as n**2 (70,000 parts, a 140 KB file, took 24 GB).
+    """
+    depth, offset = _toml_depth(text, MAX_NESTING)
+    if offset < 0:
+        return None
+    line = text.count("\n", 0, offset) + 1
+    return (f"top level: TOML nested too deeply: line {line} nests tables, lists or dotted keys (a.b.c = ...) more than "
+            f"{MAX_NESTING} levels deep; a scene nests at most 5 levels (see scenes/README.md): check the "
+            "brackets and the dots of the keys on that line")
 
 
 def _table(value, where: str, problems: list[str], fix: str) -> dict:
@@ -406,6 +522,76 @@ def _strings(values: list, where: str, problems: list[str], what: str) -> list[s
     return good
 
 
+#: Control characters (Unicode category Cc: U+0000-U+001F, U+007F-U+009F). None belongs in a name, a
+#: path or a parameter: a NUL ends the string where C reads it (the FMU got "regulate" of
+#: "regulate\u0000garbage", a mesh path was cut short), the others (a tab, an escape sequence) are
+#: typing accidents that no file name, port or mode means. TOML writes them only as escapes (\u0000).
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+#: Keys whose strings are free text for people (a description, a figure's title and labels): they
+#: may hold tabs and line breaks, nothing else of Cc.
+_FREE_TEXT_KEYS = frozenset({"description", "title", "ylabel", "label"})
+_LINE_CONTROLS = frozenset("\t\n\r")
+
+
+def _location(path: tuple) -> str:
+    """Where a parsed value is, as the other problems say it: "[fmu.tissue] parameters.mesh_file",
+    "connection 2 from", "[record] surfaces[0].name"."""
+    if not path:
+        return "top level"
+    head, rest = path[0], path[1:]
+    if head in ("fmu", "source", "block") and rest and isinstance(rest[0], str):
+        where, rest = f"[{head}.{rest[0]}]", rest[1:]
+    elif head == "connection" and rest and isinstance(rest[0], int):
+        where, rest = f"connection {rest[0] + 1}", rest[1:]
+    else:
+        where = f"[{head}]"
+    tail = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in rest).lstrip(".")
+    return f"{where} {tail}" if tail else where
+
+
+def _control_problem(text: str, where: str, what: str, free_text: bool = False) -> str | None:
+    """Why ``text`` (a string of the scene) cannot be used: it holds a control character; or None."""
+    bad = [m for m in _CONTROL.finditer(text) if not (free_text and m.group() in _LINE_CONTROLS)]
+    if not bad:
+        return None
+    char, at = bad[0].group(), bad[0].start()
+    name = {"\x00": "NUL", "\t": "TAB", "\n": "LF, a line break", "\r": "CR", "\x1b": "ESC"}.get(char)
+    shown = f"{name} (U+{ord(char):04X})" if name else f"U+{ord(char):04X}"
+    return (f"{where}: {what} {_short(text)} holds the control character {shown} at position {at}; names, paths and "
+            "parameters are printable text (a NUL would cut the string short where it is used): remove it "
+            "(a TOML escape such as \\u0000 or \\t writes one)")
+
+
+def _control_character_problems(data: dict, overrides: dict | None) -> list[str]:
+    """Every key and string of the scene (and of its overrides) that holds a control character;
+    iterative, like ``_too_deep``, after which it runs."""
+    problems: list[str] = []
+    stack: list[tuple[object, tuple]] = [(data, ())]
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, dict):
+            for key in node:
+                problem = _control_problem(key, _location(path), "the key") if isinstance(key, str) else None
+                if problem:
+                    problems.append(problem)
+            # reversed onto the stack: the problems come in the file's order
+            stack.extend((value, path + (key,)) for key, value in reversed(node.items()))
+        elif isinstance(node, list):
+            stack.extend((value, path + (i,)) for i, value in reversed(list(enumerate(node))))
+        elif isinstance(node, str):
+            key = next((part for part in reversed(path) if isinstance(part, str)), None)
+            problem = _control_problem(node, _location(path), "the value", free_text=key in _FREE_TEXT_KEYS)
+            if problem:
+                problems.append(problem)
+    for key, value in (overrides or {}).items():
+        texts = [("the key", key)] + [("the value", v) for v in _flat(value)]
+        for what, text in texts:
+            problem = _control_problem(text, f"override {key!r}", what) if isinstance(text, str) else None
+            if problem:
+                problems.append(problem)
+    return problems
+
+
 def scene_name_problem(name) -> str | None:
     """Why ``name`` cannot name a scene (and its result folder results/<name>), or None."""
     if not isinstance(name, str):
@@ -432,6 +618,7 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     if deep is not None:
         raise SceneError(path, [f"{deep}: tables or lists nested more than {MAX_NESTING} levels deep; a scene "
                                 "nests at most 5 (see scenes/README.md)"])
+    problems += _control_character_problems(data, overrides)
     allowed_top = {"scene", "fmu", "source", "block", "connection", "record", "summary"}
     _unknown_keys(data, allowed_top, "top level", problems)
     overrides = dict(overrides or {})
@@ -568,6 +755,11 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             description = read_fmu(fmu_path, sizes)
         except (OSError, ValueError) as exc:
             problems.append(f"{where} path: {exc}")
+            continue
+        # what a run loads into a process: a truncated binary passes the description and kills it
+        binary = fmu_binary_problem(fmu_path, description.model_identifier, description.ports)
+        if binary:
+            problems.append(f"{where} path: {binary}")
             continue
         fixed = description.fixed_internal_step
         step_value = table.get("step", description.default_step)
@@ -950,8 +1142,100 @@ def _load_record(table: dict, components: dict, problems: list[str], declared=fr
                 problems.append(f"[record] {key}: a continuous source has no steps to record at; record the input it drives")
                 continue
             record[key] = list(dict.fromkeys(ports))
+    _check_result_names(table, record, surfaces, plots, problems)
+    _check_plot_columns(table, record, plots, components, problems)
     return record, surfaces, plots
 
+
+#: files every run writes in its result folder, whatever the scene (recording, summary)
+_FIXED_RESULTS = {"summary.json": "the run's summary", "units.json": "the units of the CSV columns"}
+#: labels of the summary's "results" table (summary.json) that are not a stream or a surface
+_SUMMARY_LABELS = ("folder", "units", "plots", "surface_errors", "row_errors")
+
+
+def _check_result_names(table: dict, record: dict, surfaces: list, plots: list, problems: list[str]) -> None:
+    """Every file and folder a run writes into its result folder has one writer: the fixed files,
+    ``<component>.csv``, each figure, and each surface's ``<name>.pvd`` and frame folder ``<name>/``.
+    Two writers of one name lose a result or end the run with an error, so validate refuses them
+    (compared without case: many file systems do not tell ``Forces.png`` from ``forces.png``)."""
+    claimed: dict[str, tuple[str, str]] = {name.casefold(): (name, f"{name}, {role}")
+                                          for name, role in _FIXED_RESULTS.items()}
+
+    def claim(name: str, owner: str, where: str, what: str, fix: str) -> None:
+        key = name.casefold()
+        if key not in claimed:
+            claimed[key] = (name, owner)
+            return
+        first, holder = claimed[key]
+        case = " (the names differ only in case, which many file systems do not tell apart)" if first != name else ""
+        problems.append(f"{where}: {what} {name} in the result folder, which is already {holder}{case}; {fix}")
+
+    for component in record:
+        claim(f"{component}.csv", f"the CSV of [record] {component}", f"[record] {component}", "writes",
+              "rename one of the components")
+        if component in _SUMMARY_LABELS:
+            problems.append(f"[record] {component}: {component!r} is a name summary.json's results use for "
+                            "something else; rename the component to record it")
+    raw_plots = table.get("plots") if isinstance(table.get("plots"), list) else []
+    for figure in plots:
+        i = next((k for k, item in enumerate(raw_plots) if item is figure), "?")
+        claim(figure["file"], f"the figure of [record] plots[{i}]", f"[record] plots[{i}] file",
+              f"{figure['file']!r} would write", "give each figure a file of its own")
+    raw_surfaces = table.get("surfaces") if isinstance(table.get("surfaces"), list) else []
+    for surface in surfaces:
+        i = next((k for k, item in enumerate(raw_surfaces) if isinstance(item, dict)
+                  and item.get("name", f"{item.get('component')}_surface") == surface.name), "?")
+        where, fix = f"[record] surfaces[{i}] name", "give the surface another name"
+        claim(f"{surface.name}.pvd", f"the ParaView collection of [record] surfaces[{i}]", where,
+              f"{surface.name!r} would write", fix)
+        claim(surface.name, f"the frame folder of [record] surfaces[{i}]", where,
+              f"{surface.name!r} would write its frame folder", fix)
+        if surface.name in _SUMMARY_LABELS and surface.name != "units":  # "units": reported by _load_record
+            problems.append(f"{where}: {surface.name!r} is a name summary.json's results use for something else; "
+                            "give the surface another name")
+
+
+
+#: a column of an array port as the CSV header writes it: "tool_force[2]"
+_ELEMENT = re.compile(r"(?P<port>.+)\[(?P<index>0|[1-9][0-9]*)\]")
+
+
+def _check_plot_columns(table: dict, record: dict, plots: list, components: dict, problems: list[str]) -> None:
+    """A figure's series reads its column from the stream's CSV: a column the scene does not record
+    would only draw an empty panel at the end of the run, so validate refuses it. A stream whose
+    [record] entry has a problem of its own (reported already) or whose component did not load is
+    not checked again."""
+    raw_plots = table.get("plots") if isinstance(table.get("plots"), list) else []
+    for figure in plots:
+        i = next((k for k, item in enumerate(raw_plots) if item is figure), "?")
+        for j, panel in enumerate(figure.get("panels", [])):
+            for k, series in enumerate(panel.get("series", [])):
+                at = f"[record] plots[{i}] panels[{j}] series[{k}]"
+                stream, column = series["stream"], series["column"]
+                if stream not in components or (stream in table and stream not in record):
+                    continue
+                if stream not in record:
+                    problems.append(f"{at} stream: {stream} is not recorded, so there is no {stream}.csv to plot: add "
+                                    f"{stream} = [\"{column}\"] to [record]")
+                    continue
+                ports = record[stream]
+                element = _ELEMENT.fullmatch(column)
+                if column in ports:
+                    continue
+                if element and element["port"] in ports:
+                    info = components[stream].ports.get(element["port"])
+                    if info is None or 1 < info.size and int(element["index"]) < info.size:
+                        continue
+                    if info.size == 1:
+                        problems.append(f"{at} column: {stream}.{element['port']} is a single value, its column is "
+                                        f"{element['port']!r} (not {column!r})")
+                    else:
+                        problems.append(f"{at} column: {column!r} is beyond {stream}.{element['port']}, which has "
+                                        f"{info.size} values ([0] to [{info.size - 1}])")
+                    continue
+                problems.append(f"{at} column: {stream} records no column {column!r} (it records "
+                                f"{', '.join(ports) or 'nothing'}); add {column!r} to [record] {stream} or plot one "
+                                "of those")
 
 def _load_surface(where: str, item, components: dict, problems: list[str], declared) -> SurfaceSpec | None:
     if not isinstance(item, dict):

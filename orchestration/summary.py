@@ -4,7 +4,9 @@ from __future__ import annotations
 from .errors import short_status_name
 
 #: A run ends "completed", "terminated" (an FMU asked to stop: terminateSimulation), "interrupted"
-#: (Ctrl-C, SIGTERM) or "failed"; only "failed" and "interrupted" are errors for the command line.
+#: (Ctrl-C, SIGTERM) or "failed" (a component failed, or results were lost: a write that failed,
+#: frames a writer process could not write, files gone; the summary's ``lost`` lists them); only
+#: "failed" and "interrupted" are errors for the command line.
 STATUSES = ("completed", "terminated", "interrupted", "failed")
 
 
@@ -29,6 +31,11 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
     lines.append(head)
     if summary["error"]:
         lines.append(f"  {'reason' if summary['status'] == 'terminated' else 'error'}: {summary['error']}")
+    warnings = summary.get("warnings", [])  # outputs beyond their plausible range: results to distrust
+    for warning in warnings[:5]:
+        lines.append(f"  WARNING: {warning}")
+    if len(warnings) > 5:
+        lines.append(f"  WARNING: and {len(warnings) - 5} more (summary.json lists them)")
     for name, comp in summary["components"].items():
         lines.append(f"  {name:10s} {comp['rate_hz']:8.6g} Hz  {comp['steps']:7d} steps  busy {comp['busy_wall_s']:6.2f} s")
     for ref, peak in summary.get("peaks", {}).items():
@@ -56,6 +63,11 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
         lines.append(f"    {m['component']} [{m['status']}] {m['message'][:200]}")
     lines.append(f"  results in {summary['results']['folder']}/: summary.json, a CSV per component, "
                  "PNG plots, surfaces as .pvd (ParaView)")
+    lost = summary.get("lost", [])
+    for loss in lost[:5]:
+        lines.append(f"  LOST: {loss}")
+    if len(lost) > 5:
+        lines.append(f"  LOST: and {len(lost) - 5} more (summary.json lists them)")
     for error in summary["results"].get("surface_errors", [])[:5]:
         lines.append(f"  surface frame not written: {error}")
     for error in summary["results"].get("row_errors", [])[:5]:

@@ -9,10 +9,15 @@ process instead (one pipe message of the positions) and goes on.
 Nothing is lost: frames are written in the order they were sent, each file and the rewritten
 ``.pvd`` atomically (:func:`write_frame`); :meth:`SurfaceWriter.close` waits until every frame is
 on disk, and a run's process that dies leaves the writer to write what it was sent
-(:mod:`.helper_process`).
+(:mod:`.helper_process`). A writer process that dies or is killed (it made no progress within its
+deadline) leaves the frames to this process from then on, written by the thread that fed the
+writer (so the 1 kHz loop still does not wait for them): only the frames the writer had taken and
+not yet written are missing, the ``.pvd`` lists the frames that are on disk, and the recorder's
+check at the end (:meth:`~.recording.Recorder.close`) says which are missing.
 """
 from __future__ import annotations
 
+import logging
 import os
 import queue
 import threading
@@ -26,6 +31,8 @@ from .helper_process import HelperProcess, begin_helper, serve
 #: The helper's name in messages; its process runs as "surface-writer".
 LABEL = "surface writer"
 
+log = logging.getLogger(__name__)
+
 
 def write_frame(frame: Path, pvd: Path, out_dir: Path, frames: list, t: float, positions: np.ndarray,
                 triangles: np.ndarray, point_data: dict) -> None:
@@ -33,8 +40,12 @@ def write_frame(frame: Path, pvd: Path, out_dir: Path, frames: list, t: float, p
     import meshio  # only runs that record surfaces pay for the import
 
     tmp = frame.with_name(f".{frame.name}.tmp")
-    meshio.write(tmp, meshio.Mesh(positions, [("triangle", triangles)], point_data=point_data), file_format="vtu")
-    os.replace(tmp, frame)  # the .pvd never names a half-written frame
+    try:
+        meshio.write(tmp, meshio.Mesh(positions, [("triangle", triangles)], point_data=point_data), file_format="vtu")
+        os.replace(tmp, frame)  # the .pvd never names a half-written frame
+    except BaseException:
+        _remove(tmp)  # a full volume: no half-written frame left to take the space the next might find
+        raise
     frames.append((t, frame))
     write_pvd(pvd, out_dir, frames)
 
@@ -48,8 +59,19 @@ def write_pvd(pvd: Path, out_dir: Path, frames: list) -> None:
                       file=frame.relative_to(out_dir).as_posix())
     ET.indent(root)
     tmp = pvd.with_name(f".{pvd.name}.tmp")
-    tmp.write_text('<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n", encoding="utf-8")
-    os.replace(tmp, pvd)
+    try:
+        tmp.write_text('<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n", encoding="utf-8")
+        os.replace(tmp, pvd)
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+def _remove(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
 
 
 def _yield_to_the_run() -> None:
@@ -70,18 +92,28 @@ class SurfaceWriter:
     """The writer process: ``add_series`` once per surface, ``write`` per frame, ``close`` at the end.
 
     Validation stays with the caller (the recorder); errors of the writer itself (a full disk) are
-    logged by it as they happen and returned by ``close``.
+    logged by it as they happen, told at once through ``on_notice`` (the first of each surface) and
+    returned by ``close``.
     """
 
     label = LABEL
 
     def __init__(self, out_dir: Path):
+        self.out_dir = Path(out_dir)
         self._helper = HelperProcess(LABEL, _serve, str(out_dir))
         # A frame (64 KB for the default wall) fills the pipe: sending it blocks until the writer
         # reads, and the writer runs only on an idle CPU. Sent from the run's thread, the default
         # scene's 1 kHz loop spent 0.3-0.4 s of its 1.5 s waiting in these sends (measured); this
         # thread waits instead (the write releases the GIL).
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._series: dict[str, tuple[np.ndarray, Path]] = {}
+        #: frames handed to the writer process, per surface: (time, path)
+        self._sent: dict[str, list] = {}
+        #: once the writer process is gone: the frames on disk per surface, written on by this process
+        self._here: dict[str, list] | None = None
+        #: errors of the frames this process wrote itself
+        self._errors: list[str] = []
+        self._noticed: set[str] = set()
         self._sender = threading.Thread(target=self._send_all, name="surface-sender", daemon=True)
         self._sender.start()
         self._closed = False
@@ -90,7 +122,14 @@ class SurfaceWriter:
     def pid(self) -> int:
         return self._helper.pid
 
+    @property
+    def helper(self) -> HelperProcess:
+        """The process: its deadline (``timeout``), its notices (``on_notice``, ``poll``)."""
+        return self._helper
+
     def add_series(self, name: str, triangles: np.ndarray, pvd: Path) -> None:
+        self._series[name] = (triangles, Path(pvd))
+        self._sent[name] = []
         self._outbox.put(("series", name, triangles, str(pvd)))
 
     def write(self, name: str, frame: Path, t: float, positions: np.ndarray, point_data: dict) -> None:
@@ -102,7 +141,45 @@ class SurfaceWriter:
             message = self._outbox.get()
             if message is None:
                 return
-            self._helper.send(message)
+            if self._here is None:
+                if self._helper.send(message):
+                    if message[0] == "frame":
+                        self._sent[message[1]].append((message[3], Path(message[2])))
+                    continue
+                self._take_over()
+            self._write_here(message)
+
+    def _take_over(self) -> None:
+        """The writer process is gone: write the frames here from now on, each surface's ``.pvd``
+        listing the frames that are on disk (those the writer had taken and not written are not)."""
+        log.error("the %s process is gone (%s): this process writes the surface frames from now on",
+                  self.label, self._helper.exit_description())
+        self._here = {}
+        for name, sent in self._sent.items():
+            frames = self._here[name] = [(t, frame) for t, frame in sent if frame.exists()]
+            try:
+                write_pvd(self._series[name][1], self.out_dir, frames)
+            except OSError as exc:
+                self._failed(name, self._series[name][1], exc)
+
+    def _write_here(self, message: tuple) -> None:
+        if message[0] == "series":
+            self._here[message[1]] = []
+            return
+        _, name, frame, t, positions, point_data = message
+        triangles, pvd = self._series[name]
+        try:
+            write_frame(Path(frame), pvd, self.out_dir, self._here[name], t, positions, triangles, point_data)
+        except Exception as exc:
+            self._failed(name, Path(frame), exc)
+
+    def _failed(self, name: str, path: Path, exc: Exception) -> None:
+        self._errors.append(f"{name}: {type(exc).__name__}: {exc}")
+        log.error("%s: %s", LABEL, self._errors[-1])
+        if name in self._noticed or self._helper.on_notice is None:
+            return
+        self._noticed.add(name)
+        self._helper.on_notice({"name": name, "error": self._errors[-1], **_notice(path, exc, len(self._here[name]))})
 
     def close(self) -> list[str]:
         """Wait until every frame sent is written; the writer's errors, if any. Idempotent."""
@@ -110,8 +187,17 @@ class SurfaceWriter:
             return []
         self._closed = True
         self._outbox.put(None)
-        self._sender.join()
-        return self._helper.close("frame")
+        self._sender.join()  # bounded: a send waits at most the writer's deadline, then frames are written here
+        errors = self._helper.close("frame")
+        if self._here is not None:
+            errors.append("the run's own process wrote the frames from then on")
+        return errors + self._errors
+
+
+def _notice(path: Path, exc: Exception, frames_kept: int) -> dict:
+    """What the run is told when a frame cannot be written: which file, why, how many frames are kept."""
+    return {"kind": "frame", "path": str(path), "errno": getattr(exc, "errno", None),
+            "reason": getattr(exc, "strerror", None) or str(exc), "frames_kept": frames_kept}
 
 
 def _serve(conn, out_dir: str) -> None:
@@ -130,6 +216,10 @@ def _serve(conn, out_dir: str) -> None:
         else:
             _, name, frame, t, positions, point_data = message
             triangles, pvd, frames = series[name]
-            write_frame(Path(frame), pvd, out, frames, t, positions, triangles, point_data)
+            try:
+                write_frame(Path(frame), pvd, out, frames, t, positions, triangles, point_data)
+            except Exception as exc:
+                exc.notice = _notice(Path(frame), exc, len(frames))
+                raise
 
     serve(conn, LABEL, handle)

@@ -28,8 +28,10 @@ group (a service manager), it reaches the master first, which reports the run "i
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import multiprocessing
+import os
 import select
 import signal
 import sys
@@ -202,7 +204,7 @@ class WorkerFmu:
         in_layout, in_size = slot_layout(self.ports, inputs)
         out_layout, out_size = slot_layout(self.ports, observed)
         self._release_shared_memory()
-        self._shm = SharedMemory(create=True, size=8 * max(1, in_size + out_size))
+        self._shm = _reserve_shared_memory(self.name, 8 * max(1, in_size + out_size), self._time)
         block = np.ndarray((in_size + out_size,), dtype=np.float64, buffer=self._shm.buf)
         block[:] = 0.0
         self._inputs = inputs
@@ -437,6 +439,61 @@ class WorkerFmu:
     def _require_idle(self, call: str) -> None:
         if self._pending is not None:
             raise RuntimeError(f"{self.name}: {call} while a step is in flight: call finish_step() first")
+
+
+def _reserve_shared_memory(name: str, size: int, t: float | None) -> SharedMemory:
+    """A new shared memory block of ``size`` bytes whose pages are all reserved now.
+
+    The block is a file in /dev/shm (a tmpfs): creating it only sets its size, and its pages are
+    allocated when first written. On a nearly full /dev/shm that first write, in the middle of the
+    run, kills the process with SIGBUS (and the dead run leaves the block behind). Reserving the
+    pages at once (posix_fallocate) turns that into an error here, before the run starts, and the
+    block is removed again. Raises FmuCallError naming the size, the cause and the fixes.
+    """
+    def failure(exc: OSError) -> FmuCallError:
+        return FmuCallError(name, "configure", t, (
+            f"cannot reserve {size} bytes of shared memory for the worker's values in /dev/shm "
+            f"({exc.strerror or exc}): free space there (df -h /dev/shm; a container's is set by its "
+            f"--shm-size) or host {name} in the run's own process (--hosting in-process)"))
+
+    try:
+        shm = SharedMemory(create=True, size=size)
+    except OSError as exc:
+        raise failure(exc) from None
+    try:
+        fd = getattr(shm, "_fd", -1)  # CPython's POSIX SharedMemory keeps its file open as _fd
+        if fd >= 0:
+            try:
+                os.posix_fallocate(fd, 0, shm.size)
+            except OSError as exc:
+                if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                    raise
+                _check_free_space(shm.size)  # a file system that cannot reserve: at least look
+    except OSError as exc:
+        _discard_shared_memory(shm)
+        raise failure(exc) from None
+    return shm
+
+
+def _check_free_space(size: int) -> None:
+    """OSError(ENOSPC) when /dev/shm visibly lacks ``size`` bytes (where there is no /dev/shm: nothing)."""
+    try:
+        stat = os.statvfs("/dev/shm")
+    except OSError:
+        return
+    if stat.f_bavail * stat.f_frsize < size:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def _discard_shared_memory(shm: SharedMemory) -> None:
+    try:
+        shm.close()
+    except Exception:
+        pass
+    try:
+        shm.unlink()
+    except Exception as exc:
+        logger.warning("unlinking shared memory %s failed: %s", shm.name, exc)
 
 
 # -- the worker process ----------------------------------------------------------------------------

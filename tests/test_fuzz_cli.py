@@ -9,12 +9,18 @@ subprocess. Runs are kept cheap: the virtual-wall scene (one FMU, 1 kHz), durati
 50 ms when valid, ``--no-vtu --quiet``. Studies are not run: ``run_study`` is replaced by a stub
 that records what it was given, so the test checks the argument checks, not the studies (which
 have tests of their own). Case counts come from the hypothesis profile (tests/conftest.py).
+
+Issue 33 adds two probe classes: ``--out`` folders of every kind (earlier results, the user's own
+files beside them, ``.``, ``..``, ``/``, the project, symbolic links: none may lose a file a run
+did not write), and result names that collide (``validate`` must refuse exactly those scenes, an
+independent oracle decides which).
 """
 from __future__ import annotations
 
 import itertools
 import json
 import math
+import os
 import subprocess
 import sys
 from fractions import Fraction
@@ -291,3 +297,121 @@ def test_a_reader_that_goes_away_ends_validate_without_a_traceback():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 1
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+# -- output folders (issue 33): whatever --out is, no file a run did not write is ever lost ------------
+#: what a user keeps in a folder: plain files, a folder of them, names like results that are not
+#: (a CSV that is no recorded stream, a PNG no summary lists), a file inside a surface's frame folder
+USER_FILES = ["my_notes.txt", "analysis/fit.py", "data.csv", "figure.png", "aaa_wall/notes.txt", ".hidden",
+              "deep/er/file.bin", "summary.json.bak", "forces.png"]
+OUT_KINDS = ["fresh", "results", "results+user", "user", "dot", "dotdot", "root", "project", "link to results",
+             "dangling link", "link loop", "link to user", "user lock"]
+
+
+def _earlier_results(out: Path) -> None:
+    """What a completed run leaves (its summary lists its files)."""
+    out.mkdir(parents=True)
+    (out / "contact.csv").write_text('"time","tool_force[0]"\n0.0,0.0\n')
+    (out / "units.json").write_text('{"contact": {"time": "s"}}')
+    (out / "aaa_wall.pvd").write_text('<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n')
+    (out / "aaa_wall").mkdir()
+    (out / "aaa_wall" / "aaa_wall_00000.vtu").write_text("<VTKFile/>")
+    (out / "summary.json").write_text(json.dumps({"status": "completed", "results": {
+        "folder": str(out), "contact": str(out / "contact.csv"), "aaa_wall": str(out / "aaa_wall.pvd"),
+        "plots": [str(out / "wall.png")]}}))
+    (out / "wall.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+
+
+def _user_files(root: Path, names: list[str]) -> dict[Path, bytes]:
+    files = {}
+    for i, name in enumerate(names):
+        path = root / name
+        if path.exists():
+            continue
+        path.parent.mkdir(parents=True, exist_ok=True)
+        files[path] = f"the user's {name} #{i}".encode()
+        path.write_bytes(files[path])
+    return files
+
+
+@given(data=st.data())
+def test_run_into_any_output_folder_never_loses_a_file_a_run_did_not_write(workdir, capsys, data):
+    case = workdir / "outs" / f"case{next(_counter)}"
+    (case / "cwd").mkdir(parents=True)
+    kind = data.draw(st.sampled_from(OUT_KINDS))
+    names = data.draw(st.lists(st.sampled_from(USER_FILES), min_size=1, max_size=3, unique=True))
+    out = case / "out"
+    users: dict[Path, bytes] = _user_files(case / "cwd", ["cwd_file.txt"])  # the current folder holds the user's
+    replaceable = kind in ("fresh", "results", "link to results", "dangling link")
+    if kind in ("results", "results+user", "link to results"):
+        _earlier_results(case / "store" if kind == "link to results" else out)
+    if kind in ("results+user", "user"):
+        out.mkdir(exist_ok=True)
+        users |= _user_files(out, names)
+    if kind == "link to user":
+        users |= _user_files(case / "store", names)
+    if kind.startswith("link") or kind == "dangling link":
+        os.symlink(out if kind == "link loop" else case / "store", out)
+    if kind == "user lock":
+        users |= _user_files(case, ["out.lock"])
+    arg = {"dot": ".", "dotdot": "..", "root": "/", "project": str(REPO)}.get(kind, str(out))
+    before = os.getcwd()
+    os.chdir(case / "cwd")
+    try:
+        code, _, err = run_cli(["run", CHEAP_SCENE, "--duration", "0.01", "--no-vtu", "--quiet", "--hosting",
+                                "in-process", "--out", arg], capsys)
+    finally:
+        os.chdir(before)
+    event(f"{kind}: exit {code}")
+    for path, content in users.items():  # refused or not, every file of the user's is where it was
+        assert path.read_bytes() == content, (kind, path)
+    if replaceable:
+        assert code == cli.EXIT_OK, err
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["status"] == "completed"
+        assert out.is_symlink() == (kind in ("link to results", "dangling link"))  # a link stays a link
+        assert not (case / "out.running").exists() and not (case / "store.running").exists()
+    else:
+        assert code == cli.EXIT_USAGE and "error: --out" in err, err
+        assert not os.path.lexists(case / "out.running")
+
+
+# -- result names (issue 33): validate refuses exactly the scenes whose results would collide --------
+SURFACE_NAMES = ["aaa_wall", "wall2", "forces.png", "Forces.png", "tissue.png", "units.json", "UNITS.JSON",
+                 "summary.json", "catheter.csv", "contact.csv", "aaa_wall.pvd", "mesh.vtu", "x.pvd", "folder",
+                 "plots", "units", "tissue", "surfaces"]
+PLOT_FILES = ["forces.png", "tissue.png", "Forces.png", "wall2.png", "extra.png", "aaa_wall.png"]
+COLUMNS = ["strain_energy", "max_strain", "bogus", "time", "strain_energy[0]", "kinetic_energy"]
+RECORDED = {"tissue": ["strain_energy", "kinetic_energy", "max_strain", "nonlinear_fraction", "solver_iterations",
+                       "solver_residual"], "contact": [], "catheter": []}
+
+
+def _names_collide(surfaces: list[str], plots: list[str]) -> bool:
+    """The oracle: do these result names claim one name twice (compared without case), or use a
+    name the recording or the summary reserves?"""
+    claims = ["summary.json", "units.json", *(f"{c}.csv" for c in RECORDED), *plots]
+    for name in surfaces:
+        claims += [f"{name}.pvd", name]
+    reserved = {*RECORDED, "units", "folder", "plots", "surface_errors", "row_errors"}
+    return len({c.casefold() for c in claims}) != len(claims) or any(s in reserved for s in surfaces)
+
+
+@given(data=st.data())
+def test_validate_refuses_exactly_the_result_names_that_collide(workdir, capsys, data):
+    surfaces = data.draw(st.lists(st.sampled_from(SURFACE_NAMES), min_size=1, max_size=3))
+    plots = [data.draw(st.sampled_from(PLOT_FILES)) for _ in range(2)]
+    column = data.draw(st.sampled_from(COLUMNS))
+    text = (SCENE_DIR / "aaa_endovascular.toml").read_text()
+    text = text.replace('name = "aaa_wall"', f'name = "{surfaces[0]}"')
+    text = text.replace('file = "forces.png"', f'file = "{plots[0]}"').replace('file = "tissue.png"',
+                                                                               f'file = "{plots[1]}"')
+    text = text.replace('column = "strain_energy", label = "strain energy"', f'column = "{column}"')
+    for name in surfaces[1:]:
+        text += ('\n[[record.surfaces]]\ncomponent = "tissue"\npositions = "surface_positions"\n'
+                 f'triangles = "surface_triangles"\nname = "{name}"\n')
+    path = workdir / f"names{next(_counter)}.toml"
+    path.write_text(text)
+    code, out, err = run_cli(["validate", str(path)], capsys)
+    expected_ok = not _names_collide(surfaces, plots) and column in RECORDED["tissue"]
+    event("accepted" if expected_ok else "refused")
+    assert code == (cli.EXIT_OK if expected_ok else cli.EXIT_USAGE), (surfaces, plots, column, err)

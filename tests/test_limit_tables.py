@@ -29,3 +29,21 @@ def test_the_softest_tissue_sends_a_compliance_contact_accepts(tissue_fmu, conta
         w = fmu.get("compliance")
     assert np.abs(w).max() > 1.0  # soft enough to have crossed the former 1 m/N limit
     assert low_w <= w.min() and w.max() <= high_w, (w.min(), w.max(), low_w, high_w)
+
+
+def test_an_output_without_a_range_is_held_to_the_range_of_the_inputs_it_feeds():
+    """The run's plausibility check takes the consumer's limit table as the contract: one place for
+    each limit (Tissue declares no range for its compliance; Contact's input does)."""
+    from types import SimpleNamespace
+
+    from orchestration.observers import plausible_range
+
+    def port(minimum=None, maximum=None, unit="m/N"):
+        return SimpleNamespace(causality="output", type="Float64", minimum=minimum, maximum=maximum, unit=unit)
+
+    compliance = port()
+    assert plausible_range(compliance) is None  # no unit bound of its own
+    low, high, why = plausible_range(compliance, [("contact.compliance", port(-1e4, 1e4)),
+                                                  ("other.compliance", port(-5.0, 100.0))])
+    assert (low, high) == (-5.0, 100.0) and "other.compliance" in why
+    assert plausible_range(port(0.0, 1.0), [("contact.compliance", port(-1e4, 1e4))])[:2] == (0.0, 1.0)
