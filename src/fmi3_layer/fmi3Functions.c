@@ -1199,11 +1199,16 @@ fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
     SavedState *saved = live_state(inst, "fmi3SetFMUState", FMUState);
     if (!saved) return fmi3Error;
     PyObject *result = CALL_MODEL(inst, "fmi3SetFMUState", "set_state", "(O)", saved->model_state);
-    if (!result) {
+    if (!result) { /* the restore failed part way: the instance is in no defined state */
         inst->mode = M_ERROR;
         return fmi3Error;
     }
-    release(result);
+    PyGILState_STATE gil = py.PyGILState_Ensure();
+    double applied = py.PyFloat_AsDouble(result);
+    if (py.PyErr_Occurred()) py.PyErr_Clear();
+    py.Py_DecRef(result);
+    py.PyGILState_Release(gil);
+    if (applied != 1.0) return fmi3Error; /* refused before anything was set (logged): nothing changed */
     inst->mode = saved->mode;
     inst->built = saved->built;
     inst->steps_done = saved->steps_done;

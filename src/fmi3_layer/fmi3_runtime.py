@@ -582,10 +582,17 @@ class RuntimeInstance:
         return _Snapshot(buffers, strings, self.set_counts.copy(), type(self.adapter), copy.deepcopy(state),
                          values_attributes)
 
-    def set_state(self, snapshot: _Snapshot) -> None:
+    def set_state(self, snapshot: _Snapshot) -> float:
+        """Restore ``snapshot``: 1.0; 0.0 when a state read from bytes was refused (logged) and the
+        instance is as it was. An exception: the restore failed part way."""
         if snapshot.from_bytes and snapshot.adapter_class is not None:
-            self._check_model_state(snapshot)
+            try:
+                self._check_model_state(snapshot)
+            except StateFormatError as exc:
+                self.log(ERROR, f"fmi3SetFMUState: refused, nothing was set: {exc}")
+                return 0.0
         self._apply(snapshot)
+        return 1.0
 
     def _check_model_state(self, snapshot: _Snapshot) -> None:
         """A state read from bytes must hold the model its parameters build: the same classes, the
