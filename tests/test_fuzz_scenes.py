@@ -299,11 +299,20 @@ def test_mutated_shipped_scenes_through_the_cli_in_process(capsys, case):
         assert out.splitlines()[0].endswith(": OK")
 
 
-@given(st.integers(min_value=0, max_value=3000), st.sampled_from(["[", "{a = "]), st.sampled_from(KEYS[:7] + ["x"]))
+@given(st.integers(min_value=0, max_value=3000), st.sampled_from(["[", "{a = ", "dotted", "[table"]),
+       st.sampled_from(KEYS[:7] + ["x"]))
 def test_nesting_of_any_depth_is_accepted_or_refused_never_a_recursion_error(depth, opener, key):
-    closer = "]" if opener == "[" else "}"
-    inner = "1" if opener != "[" else ""
-    path = write_bytes(f"{json.dumps(key)} = {opener * depth}{inner}{closer * depth}\n".encode())
+    """Brackets, inline tables, dotted keys (`x.x.x = 1`: tomllib's memory grows with the square of
+    their depth) and dotted table headers, at any depth."""
+    if opener == "dotted":
+        text = ".".join([json.dumps(key)] * (depth + 1)) + " = 1\n"
+    elif opener == "[table":
+        text = "[" + ".".join([json.dumps(key)] * (depth + 1)) + "]\nx = 1\n"
+    else:
+        closer = "]" if opener == "[" else "}"
+        inner = "1" if opener != "[" else ""
+        text = f"{json.dumps(key)} = {opener * depth}{inner}{closer * depth}\n"
+    path = write_bytes(text.encode())
     try:
         load_scene(path)
     except SceneError as exc:
