@@ -808,7 +808,9 @@ def _load_package(resources: Path, unique: str, package: str, token: str):
 
 def _check_model_description(resources: Path, meta: dict) -> None:
     """Refuse an FMU whose modelDescription.xml is not the one it was built with: an importer reads
-    value references, types and sizes from that file, and a changed one would pair them wrongly."""
+    value references, types and sizes from that file, and a changed one would pair them wrongly.
+    Some importers extract only the binaries and resources (FMPy's simulate_fmu reads the XML from
+    the archive): without the file beside the resources there is nothing to compare."""
     expected = meta.get("model_description_sha256")
     path = resources.parent / "modelDescription.xml"
     if expected is None:
@@ -816,9 +818,11 @@ def _check_model_description(resources: Path, meta: dict) -> None:
                          "older build; build it again (python -m orchestration build)")
     try:
         actual = hashlib.sha256(path.read_bytes()).hexdigest()
+    except FileNotFoundError:
+        return
     except OSError as exc:
-        raise ValueError(f"cannot read {path} ({exc.strerror or exc}): extract the whole FMU, as the standard "
-                         "asks, and instantiate it from there") from None
+        raise ValueError(f"cannot read {path} ({exc.strerror or exc}): extract the FMU where its importer can "
+                         "read it") from None
     if actual != expected:
         raise ValueError(f"{path} is not the modelDescription.xml this FMU was built with (its SHA-256 differs): "
                          "the FMU was changed after its build; use the FMU as built, or build it again "
