@@ -234,6 +234,30 @@ def serve_fmpy(fmu_path: str, work: str) -> None:
                     status = raw["fmi3FreeFMUState"](slave.component, ctypes.byref(state))
                 if status == OK:
                     status = raw["fmi3DeserializeFMUState"](slave.component, data, size.value, ctypes.byref(state))
+        elif command == "stale_state":  # a copied handle used after its state was freed: refused alike
+            fresh = fmi3FMUState()
+            status = raw["fmi3GetFMUState"](slave.component, ctypes.byref(fresh))
+            copy = fmi3FMUState(fresh.value)
+            if status == OK:
+                status = raw["fmi3FreeFMUState"](slave.component, ctypes.byref(fresh))
+            if status == OK:
+                refused = raw["fmi3SetFMUState"](slave.component, copy)
+                status = refused if refused == raw["fmi3FreeFMUState"](slave.component, ctypes.byref(copy)) else 99
+        elif command == "damaged_state":  # serialized bytes with one bit flipped: refused
+            fresh, restored, size = fmi3FMUState(), fmi3FMUState(), ctypes.c_size_t()
+            status = raw["fmi3GetFMUState"](slave.component, ctypes.byref(fresh))
+            if status == OK:
+                status = raw["fmi3SerializedFMUStateSize"](slave.component, fresh, ctypes.byref(size))
+            if status == OK:
+                data = (fmi3Byte * size.value)()
+                status = raw["fmi3SerializeFMUState"](slave.component, fresh, data, size.value)
+                if status == OK:
+                    data[size.value // 2] ^= 0x10
+                    status = raw["fmi3DeserializeFMUState"](slave.component, data, size.value, ctypes.byref(restored))
+                    if restored:
+                        raw["fmi3FreeFMUState"](slave.component, ctypes.byref(restored))
+            if fresh:
+                raw["fmi3FreeFMUState"](slave.component, ctypes.byref(fresh))
         elif command in ("set", "get"):
             kind, n, refs = args[0], int(args[1]), [int(r) for r in args[2].split(",")] if len(args) > 2 else []
             vrs = (fmi3ValueReference * len(refs))(*refs)

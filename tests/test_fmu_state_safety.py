@@ -208,6 +208,9 @@ def test_freed_copied_foreign_and_misplaced_handles_are_refused_not_followed(nam
             print("free", status(s.fmi3FreeFMUState, c, ctypes.byref(state)))
             print("free copy", status(s.fmi3FreeFMUState, c, ctypes.byref(copy)))
             print("set freed", status(s.fmi3SetFMUState, c, copy))
+            newer = s.getFMUState()  # the allocator may well reuse the freed state's memory for it
+            print("set freed after reuse", status(s.fmi3SetFMUState, c, copy))
+            print("set newer", status(s.fmi3SetFMUState, c, newer))
             size = ctypes.c_size_t()
             print("size freed", status(s.fmi3SerializedFMUStateSize, c, copy, ctypes.byref(size)))
             junk = ctypes.create_string_buffer(64)
@@ -228,7 +231,9 @@ def test_freed_copied_foreign_and_misplaced_handles_are_refused_not_followed(nam
     assert result.returncode == 0, result.stderr[-3000:]
     lines = dict(line.rsplit(" ", 1) for line in result.stdout.splitlines() if " " in line)
     assert lines["free"] == "0"
-    for call in ("free copy", "set freed", "size freed", "set foreign", "get into foreign", "set after fmusim free"):
+    assert lines["set newer"] == "0"
+    for call in ("free copy", "set freed", "set freed after reuse", "size freed", "set foreign", "get into foreign",
+                 "set after fmusim free"):
         assert lines[call] == "3", (call, result.stdout)
     assert lines["fmusim free"] == "1"  # fmi3Warning: understood and freed, with a word why
     assert int(lines["messages"]) >= 6

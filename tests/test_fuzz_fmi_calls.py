@@ -6,7 +6,9 @@ inputs, outputs) with calls inserted that the FMU must refuse where they stand (
 unknown or wrong-type value reference, more or fewer values than the references hold, a NaN or an
 implausible input, a time jump, a step that is no multiple of the internal step, an output or a
 fixed parameter set in Step Mode...) and legal calls that must change nothing (getters, an FMU
-state saved, serialized and restored). Every case asserts:
+state saved, serialized and restored) and state handles misused (a freed state set and freed again
+through a copied handle, serialized bytes with a bit flipped), which must be refused. Every case
+asserts:
 
 - the host process survives (a signal or a hang fails the case, with the calls made);
 - every inserted refusal returned fmi3Error with a reason logged during that call, every plain
@@ -88,7 +90,8 @@ def _noise_menus(name: str, p: dict) -> dict[str, list[tuple[str, ...]]]:
                  ("refused", "exit_config"), ("refused", f"set f64 1 {fixed_parameter.vr} {h!r}"),
                  ("refused", f"set u64 1 {structural.vr} 5"),
                  ("ok", get_command(array_output)), ("ok", get_command(scalar_output)),
-                 ("ok", "get_state", "roundtrip_state", "set_state", "free_state")],
+                 ("ok", "get_state", "roundtrip_state", "set_state", "free_state"),
+                 ("refused", "stale_state"), ("refused", "damaged_state")],
         "Terminated": [("refused", f"step 0.0 {h!r}"), ("refused", "terminate"), ("refused", "enter_init"),
                        ("refused", set_command(input_port, [0.0] * input_port.size)),
                        ("ok", get_command(scalar_output))],
@@ -221,7 +224,8 @@ def call_sequences(draw, name: str, p: dict):
     input_name = next(iter(run.inputs))
     choices = st.one_of(
         st.sampled_from(["enter_init", "exit_init", "enter_config", "exit_config", "terminate", "reset",
-                         "get_state", "set_state", "free_state", "roundtrip_state", get_command(output),
+                         "get_state", "set_state", "free_state", "roundtrip_state", "stale_state", "damaged_state",
+                         get_command(output),
                          f"get f64 {output.size + 1} {output.vr}", "get f64 1 9999"]),
         st.builds(lambda k, f: f"step {k * h * f!r} {h!r}", st.integers(0, 8), st.sampled_from([1.0, 1.0, 1.5])),
         st.builds(lambda x: set_command(p[input_name], x), st.sampled_from([0.0, 1e-3, float("nan"), 1e300])),
@@ -252,6 +256,9 @@ def check_sequence(commands, answers, p_by_vr) -> None:
             assert answer.status == OK, answer
             continue
         kind = _kind_of(command, p_by_vr)
+        if kind in ("stale_state", "damaged_state"):  # refused in every mode, and nothing changes
+            assert answer.status == ERROR and errors, f"{command!r} in {modes} was not refused: {answer}"
+            continue
         if kind in LEGAL and not (modes & LEGAL[kind]):
             assert answer.status == ERROR and errors, f"{command!r} in {modes} was not refused: {answer}"
         if answer.status == ERROR:

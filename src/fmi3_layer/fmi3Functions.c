@@ -125,6 +125,7 @@ typedef struct {
     int interrupted;      /* a KeyboardInterrupt ended a Python call of the current FMI call */
     void **states;        /* the live FMU states this instance handed out (see "FMU state") */
     size_t n_states, capacity_states;
+    uintptr_t next_handle; /* the handle the next state gets (never one handed out before) */
     char last_error[4096];
 } Instance;
 
@@ -1073,11 +1074,14 @@ fmi3Status fmi3GetOutputDerivatives(fmi3Instance instance, const fmi3ValueRefere
 }
 
 /* ---- FMU state ------------------------------------------------------------------------------------------ */
-/* A saved state: the C layer's fields and the runtime's snapshot. Every state an instance hands out
- * is in its registry until freed; a handle that is not there (freed, of another instance, or the
- * state itself where a pointer to it is due, as fmusim v0.0.39 passes to fmi3FreeFMUState) is
- * looked up before anything is dereferenced, so it is refused or understood, never followed. */
+/* A saved state: the C layer's fields and the runtime's snapshot. The importer holds a handle, not
+ * the state's address: a number this instance hands out once and never again (odd, so no aligned
+ * pointer of the importer's is ever one), looked up in the instance's registry of live states
+ * before anything is touched. So a freed handle, a copy of one, another instance's, garbage, or
+ * the state itself where a pointer to it is due (fmusim v0.0.39's fmi3FreeFMUState) is refused or
+ * understood, never followed, even after the allocator reused the freed state's memory. */
 typedef struct {
+    uintptr_t handle;      /* what the importer holds (fmi3FMUState) */
     int mode, built;
     uint64_t steps_done;
     double start_time, step_size;
@@ -1090,20 +1094,27 @@ static int is_state_mode(int mode) {
     return (mode & ALLOWED_FMUState) && (mode & (mode - 1)) == 0;
 }
 
-static int registered(const Instance *inst, const void *state) {
-    for (size_t i = 0; state && i < inst->n_states; i++)
-        if (inst->states[i] == state) return 1;
-    return 0;
+/* The live state a handle names, or NULL; the handle is compared, never dereferenced. */
+static SavedState *registered(const Instance *inst, const void *handle) {
+    for (size_t i = 0; handle && i < inst->n_states; i++) {
+        SavedState *saved = (SavedState *)inst->states[i];
+        if (saved->handle == (uintptr_t)handle) return saved;
+    }
+    return NULL;
 }
 
 static int register_state(Instance *inst, SavedState *saved) {
     if (inst->n_states == inst->capacity_states) {
         size_t capacity = inst->capacity_states ? 2 * inst->capacity_states : 8;
-        SavedState **grown = realloc(inst->states, capacity * sizeof *grown);
+        void **grown = realloc(inst->states, capacity * sizeof *grown);
         if (!grown) return 0;
-        inst->states = (void **)grown;
+        inst->states = grown;
         inst->capacity_states = capacity;
     }
+    /* odd numbers from an address of this instance's own: distinct across instances in the process */
+    if (!inst->next_handle) inst->next_handle = ((uintptr_t)inst << 8) | 1u;
+    saved->handle = inst->next_handle;
+    inst->next_handle += 2;
     inst->states[inst->n_states++] = saved;
     return 1;
 }
@@ -1140,7 +1151,8 @@ static void free_all_states(Instance *inst) {
 
 /* The state a handle names, or NULL (logged) when it names none of this instance's live states. */
 static SavedState *live_state(Instance *inst, const char *function, fmi3FMUState state) {
-    if (registered(inst, state)) return (SavedState *)state;
+    SavedState *saved = registered(inst, state);
+    if (saved) return saved;
     log_message(inst, fmi3Error, "%s: FMUState %p is not a live state of instance '%s' (NULL, freed, or of "
                 "another instance): use a state this instance returned from fmi3GetFMUState or "
                 "fmi3DeserializeFMUState and has not freed", function, state, inst->instance_name);
@@ -1189,7 +1201,7 @@ fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
         return fmi3Error;
     }
     fill_state(inst, saved, inst->mode, inst->built, inst->steps_done, inst->start_time, inst->step_size, snapshot);
-    *FMUState = saved;
+    *FMUState = (fmi3FMUState)saved->handle;
     return fmi3OK;
 }
 
@@ -1222,10 +1234,11 @@ fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3FreeFMUState")) return fmi3Error;
     if (!FMUState) return fmi3OK;
-    if (registered(inst, FMUState)) { /* the state itself where a pointer to it is due (fmusim v0.0.39) */
+    SavedState *misplaced = registered(inst, FMUState);
+    if (misplaced) { /* the state itself where a pointer to it is due (fmusim v0.0.39) */
         log_message(inst, fmi3Warning, "fmi3FreeFMUState: was given the state %p itself, not a pointer to it; "
                     "freed that state (the standard passes fmi3FMUState*)", (void *)FMUState);
-        free_state(inst, (SavedState *)FMUState);
+        free_state(inst, misplaced);
         return fmi3Warning;
     }
     if (!*FMUState) return fmi3OK;
@@ -1351,7 +1364,7 @@ fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte seriali
         return fmi3Error;
     }
     fill_state(inst, saved, mode, built, (uint64_t)steps_done, start_time, step_size, snapshot);
-    *FMUState = saved;
+    *FMUState = (fmi3FMUState)saved->handle;
     return fmi3OK;
 }
 

@@ -19,7 +19,9 @@
  *   scripted sequences, tests/fuzz_hosts.py, which speaks the same protocol through FMPy):
  *     instantiate | free | enter_init | exit_init | enter_config | exit_config | terminate | reset
  *     step T H | set TYPE N VR[,VR..] V.. | get TYPE N VR[,VR..]
- *     get_state | set_state | free_state | roundtrip_state | quit
+ *     get_state | set_state | free_state | roundtrip_state | stale_state | damaged_state | quit
+ *   (stale_state: a state freed, then set and freed through a copy of its handle; damaged_state: a
+ *   state serialized, one bit flipped, deserialized: both must be refused)
  *   TYPE is f64, i32, u64, bool or str (strings percent-encoded); N is nValues (the buffer always
  *   holds at least N values). Each answer is the lines the FMU logged during the call,
  *   "L <status> <message>", then "R <status> [values]" (values of a get that returned OK or
@@ -471,6 +473,31 @@ static int serve(const char *fmu, const char *work) {
                 if (status == fmi3OK) status = fmi3DeserializeFMUState(instance, bytes, size, &state);
                 free(bytes);
             }
+        } else if (strcmp(command, "stale_state") == 0) { /* a copied handle used after its state was freed */
+            fmi3FMUState fresh = NULL, copy;
+            status = fmi3GetFMUState(instance, &fresh);
+            copy = fresh;
+            if (status == fmi3OK) status = fmi3FreeFMUState(instance, &fresh);
+            if (status == fmi3OK) {
+                fmi3Status set = fmi3SetFMUState(instance, copy), freed = fmi3FreeFMUState(instance, &copy);
+                status = set == freed ? set : (fmi3Status)99; /* both must be refused alike */
+            }
+        } else if (strcmp(command, "damaged_state") == 0) { /* serialized bytes with one bit flipped */
+            fmi3FMUState fresh = NULL, restored = NULL;
+            size_t size = 0;
+            status = fmi3GetFMUState(instance, &fresh);
+            if (status == fmi3OK) status = fmi3SerializedFMUStateSize(instance, fresh, &size);
+            if (status == fmi3OK) {
+                fmi3Byte *bytes = malloc(size ? size : 1);
+                status = fmi3SerializeFMUState(instance, fresh, bytes, size);
+                if (status == fmi3OK) {
+                    bytes[size / 2] ^= 0x10;
+                    status = fmi3DeserializeFMUState(instance, bytes, size, &restored);
+                    if (restored) fmi3FreeFMUState(instance, &restored);
+                }
+                free(bytes);
+            }
+            if (fresh) fmi3FreeFMUState(instance, &fresh);
         } else if (strcmp(command, "set") == 0 || strcmp(command, "get") == 0) {
             int set = command[0] == 's';
             const char *type = strtok_r(NULL, " ", &save);
