@@ -399,6 +399,7 @@ def _toml_depth(text: str, limit: int) -> tuple[int, int]:
     state = "key"                       # "key" (reading one), "value" (expecting one), "after" (one ended)
     table = base = dots = 0             # the current [table]'s depth; the depth being read; a key's dots
     header = None                       # inside [a.b] / [[a.b]]: its key parts so far
+    array_of_tables = False             # ... and whether it is [[a.b]]
     arrays: set[tuple[str, ...]] = set()  # the [[arrays.of.tables]] seen
     statement_start = True              # a '[' here opens a table header, not an array
     deepest = 0

@@ -6,10 +6,8 @@ import time
 from pathlib import Path
 
 
-def group_members(pgid: int) -> list[str]:
-    """Processes still in the run's process group (its workers, the writers, the resource tracker):
-    ``"pid: [name] command line"``."""
-    found = []
+def _group(pgid: int):
+    """(pid, name, command line) of each live process in the process group ``pgid``."""
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -21,8 +19,18 @@ def group_members(pgid: int) -> list[str]:
             continue
         fields = stat[stat.rindex(")") + 2:].split()
         if int(fields[2]) == pgid and fields[0] != "Z":
-            found.append(f"{entry.name}: [{name}] {cmdline[:120]}")
-    return found
+            yield int(entry.name), name, cmdline
+
+
+def group_members(pgid: int) -> list[str]:
+    """Processes still in the run's process group (its workers, the writers, the resource tracker):
+    ``"pid: [name] command line"``."""
+    return [f"{pid}: [{name}] {cmdline[:120]}" for pid, name, cmdline in _group(pgid)]
+
+
+def group_pids(pgid: int, name: str) -> list[int]:
+    """The processes of group ``pgid`` named ``name`` (their comm: "row-writer", "surface-writer")."""
+    return [pid for pid, comm, _ in _group(pgid) if comm == name]
 
 
 def assert_no_process_left(pgid: int, grace: float = 5.0) -> None:

@@ -8,7 +8,6 @@ version, length and SHA-256 around fields fmi3SerializeFMUState never writes.
 """
 from __future__ import annotations
 
-import ctypes
 import hashlib
 import json
 import os

@@ -24,7 +24,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from process_helpers import assert_no_process_left
+from process_helpers import assert_no_process_left, group_pids
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -64,23 +64,6 @@ def _finish(proc: subprocess.Popen, timeout: float) -> tuple[int, str, str]:
         out, err = proc.communicate()
         pytest.fail(f"the run did not end within {timeout:g} s (killed); stderr: {err[-2000:]}")
     return proc.returncode, out, err
-
-
-def _group_pids(pgid: int, name: str) -> list[int]:
-    """The processes of group ``pgid`` named ``name`` (their comm: "row-writer", "surface-writer")."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            comm = (entry / "comm").read_text().strip()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2:].split()
-        if int(fields[2]) == pgid and comm == name and fields[0] != "Z":
-            found.append(int(entry.name))
-    return found
 
 
 def _wait_for(predicate, timeout: float, what: str):
@@ -311,7 +294,7 @@ def test_a_stopped_row_writer_ends_in_its_deadline_and_the_run_says_what_was_los
                   "--set", "scene.worker_timeout=2")
     try:
         _wait_for(lambda: _rows(tmp_path / "out.running" / "contact.csv") > 200, 120, "no rows")
-        writer, = _wait_for(lambda: _group_pids(proc.pid, "row-writer"), 10, "no row writer")
+        writer, = _wait_for(lambda: group_pids(proc.pid, "row-writer"), 10, "no row writer")
         os.kill(writer, signal.SIGSTOP)
         rc, _, err = _finish(proc, 60)
     finally:
@@ -336,7 +319,7 @@ def test_sigterm_stops_a_run_whose_row_writer_is_stopped(built, tmp_path):
                   "--set", "scene.worker_timeout=100")
     try:
         _wait_for(lambda: _rows(tmp_path / "out.running" / "contact.csv") > 200, 120, "no rows")
-        writer, = _wait_for(lambda: _group_pids(proc.pid, "row-writer"), 10, "no row writer")
+        writer, = _wait_for(lambda: group_pids(proc.pid, "row-writer"), 10, "no row writer")
         os.kill(writer, signal.SIGSTOP)
         time.sleep(2.0)  # the pipe fills
         proc.send_signal(signal.SIGTERM)
@@ -366,7 +349,7 @@ def test_a_surface_writer_killed_mid_run_is_a_failed_run_whose_pvd_lists_the_fra
     try:
         frames = tmp_path / "out.running" / "aaa_wall"
         _wait_for(lambda: (frames / "aaa_wall_00001.vtu").exists(), 120, "no frame written")
-        writer, = _wait_for(lambda: _group_pids(proc.pid, "surface-writer"), 10, "no surface writer")
+        writer, = _wait_for(lambda: group_pids(proc.pid, "surface-writer"), 10, "no surface writer")
         os.kill(writer, signal.SIGSTOP)
         time.sleep(1.0)  # frames pile up in its pipe
         os.kill(writer, signal.SIGKILL)
