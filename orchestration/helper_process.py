@@ -34,20 +34,13 @@ from multiprocessing.reduction import ForkingPickler
 from typing import Callable
 
 from . import stopping
-from .stopping import STOP_SIGNALS, set_process_name, start_shielded
+from .stopping import STOP_SIGNALS, RecentSlowest, set_process_name, start_shielded
 
 log = logging.getLogger(__name__)
 
 #: The longest close() waits for the work still queued, however much progress the helper makes (a
 #: writer that ran only on idle CPUs may have most of a run's work left when the run ends).
 CLOSE_TIMEOUT_S = 600.0
-#: The automatic deadline: at least this many seconds without progress ... (the workers' rule:
-#: worker.REPLY_TIMEOUT_FLOOR)
-HELPER_TIMEOUT_FLOOR = 10.0
-#: ... or this many times the longest of the recent waits that ended in progress (worker.REPLY_TIMEOUT_FACTOR).
-HELPER_TIMEOUT_FACTOR = 100.0
-#: Waits per window of the "recent" longest wait (the last one to two windows count).
-_RECENT_WINDOW = 256
 #: While waiting for a helper, how often the run looks at its progress, its liveness and a stop request (s).
 _WATCH_INTERVAL_S = 0.2
 
@@ -87,9 +80,7 @@ class HelperProcess:
         #: why the run killed the helper (None: it was not killed by the run)
         self._killed: str | None = None
         self._closed = False
-        self._slowest = 0.0
-        self._slowest_before = 0.0
-        self._waits = 0
+        self._waits = RecentSlowest()  # the automatic deadline: the workers' rule (stopping.RecentSlowest)
 
     @property
     def pid(self) -> int:
@@ -258,17 +249,10 @@ class HelperProcess:
         """How long the helper may go without progress while the run waits for it, and why."""
         if self.timeout is not None:
             return self.timeout, "the scene's [scene] worker_timeout"
-        slowest = max(self._slowest, self._slowest_before)
-        limit = max(HELPER_TIMEOUT_FLOOR, HELPER_TIMEOUT_FACTOR * slowest)
-        return limit, (f"max({HELPER_TIMEOUT_FLOOR:g} s, {HELPER_TIMEOUT_FACTOR:g} x its longest recent wait of "
-                       f"{slowest:.3g} s), as for the workers; set [scene] worker_timeout to change it")
+        return self._waits.deadline("wait")
 
     def _waited(self, seconds: float) -> None:
-        if seconds > self._slowest:
-            self._slowest = seconds
-        self._waits += 1
-        if self._waits >= _RECENT_WINDOW:
-            self._slowest_before, self._slowest, self._waits = self._slowest, 0.0, 0
+        self._waits.add(seconds)
 
 
 class _Watch:

@@ -182,3 +182,37 @@ def set_process_name(name: str) -> None:
             comm.write(name[:15])
     except OSError:
         pass
+
+
+#: The automatic deadline of a helper or worker process the run waits for: at least this many
+#: seconds ...
+DEADLINE_FLOOR = 10.0
+#: ... or this many times the slowest recent wait (a step's cost varies: a tissue step that
+#: refactorises takes 10x its median; a 100x margin only catches a process that is stuck).
+DEADLINE_FACTOR = 100.0
+#: Waits per window of the "recent" slowest one (the last one to two windows count).
+_RECENT_WINDOW = 256
+
+
+class RecentSlowest:
+    """The slowest of a process's recent waits (the last one to two windows of them), and the
+    automatic deadline it gives: the one rule for the FMU workers and the writer processes."""
+
+    def __init__(self):
+        self.current = 0.0  # slowest wait in the current window (s)
+        self.before = 0.0   # ... and in the window before
+        self._count = 0
+
+    def add(self, seconds: float) -> None:
+        if seconds > self.current:
+            self.current = seconds
+        self._count += 1
+        if self._count >= _RECENT_WINDOW:
+            self.before, self.current, self._count = self.current, 0.0, 0
+
+    def deadline(self, what: str) -> tuple[float, str]:
+        """(seconds, why) of the automatic deadline; ``what`` names the wait ("reply", "wait")."""
+        slowest = max(self.current, self.before)
+        return max(DEADLINE_FLOOR, DEADLINE_FACTOR * slowest), (
+            f"max({DEADLINE_FLOOR:g} s, {DEADLINE_FACTOR:g} x its slowest recent {what} of {slowest:.3g} s); set "
+            "[scene] worker_timeout to change it")

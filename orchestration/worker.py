@@ -44,7 +44,7 @@ from .errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, e
 from .hosting import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
 from .native_threads import limit_native_threads
 from .ports import FmuDescription, PortInfo
-from .stopping import STOP_SIGNALS, start_shielded
+from .stopping import STOP_SIGNALS, RecentSlowest, start_shielded
 
 logger = logging.getLogger(__name__)
 
@@ -52,13 +52,6 @@ logger = logging.getLogger(__name__)
 _LIVENESS_INTERVAL_MS = 500
 #: How long terminate() waits for the worker to shut down cleanly before killing it (s).
 _SHUTDOWN_TIMEOUT = 10.0
-#: The automatic reply deadline during the run: at least this many seconds ...
-REPLY_TIMEOUT_FLOOR = 10.0
-#: ... or this many times the slowest reply of the recent ones (a step's cost varies: a tissue
-#: step that refactorises takes 10x its median; a 100x margin only catches a worker that is stuck).
-REPLY_TIMEOUT_FACTOR = 100.0
-#: Replies per window of the "recent" slowest reply (the last one to two windows count).
-_RECENT_WINDOW = 256
 #: The allowance for the first calls (instantiation, initialization), which may load a model
 #: and compile its kernels (about a minute here with an empty numba cache).
 SETUP_TIMEOUT = 600.0
@@ -134,9 +127,7 @@ class WorkerFmu:
         self.stop_level = 0
         self._in_setup = True        # until exit_initialization has answered
         self._sent_at = 0.0          # monotonic time of the last command sent
-        self._slowest = 0.0          # slowest reply in the current window of recent ones (s)
-        self._slowest_before = 0.0   # ... and in the window before
-        self._replies = 0
+        self.replies = RecentSlowest()  # the automatic reply deadline during the run
         self.terminate_requested = False
         self.early_return = False
         self.last_successful_time = 0.0
@@ -355,10 +346,7 @@ class WorkerFmu:
             return self.setup_timeout, "the allowance for its first calls (loading, instantiation, initialization)"
         if self.reply_timeout is not None:
             return self.reply_timeout, "the scene's [scene] worker_timeout"
-        slowest = max(self._slowest, self._slowest_before)
-        timeout = max(REPLY_TIMEOUT_FLOOR, REPLY_TIMEOUT_FACTOR * slowest)
-        return timeout, (f"max({REPLY_TIMEOUT_FLOOR:g} s, {REPLY_TIMEOUT_FACTOR:g} x its slowest recent reply of "
-                         f"{slowest:.3g} s); set [scene] worker_timeout to change it")
+        return self.replies.deadline("reply")
 
     def _receive(self, call: str, timeout: float | None = None):
         conn = self._conn
@@ -392,12 +380,7 @@ class WorkerFmu:
         except (EOFError, ConnectionError, OSError):
             raise self._crashed(call) from None
         if not self._in_setup:
-            elapsed = time.monotonic() - self._sent_at
-            if elapsed > self._slowest:
-                self._slowest = elapsed
-            self._replies += 1
-            if self._replies >= _RECENT_WINDOW:
-                self._slowest_before, self._slowest, self._replies = self._slowest, 0.0, 0
+            self.replies.add(time.monotonic() - self._sent_at)
         for status, text in messages:
             self.messages.append((status, text))
             self._logger.log(LOG_LEVELS.get(status, logging.ERROR), "%s", text)

@@ -302,15 +302,16 @@ def test_a_stopped_worker_ends_the_run_as_failed_after_the_scene_timeout(built, 
 
 
 def test_the_automatic_worker_deadline_grows_with_the_slowest_recent_reply():
-    from orchestration.worker import REPLY_TIMEOUT_FLOOR, WorkerFmu
+    from orchestration.stopping import DEADLINE_FLOOR, RecentSlowest
+    from orchestration.worker import WorkerFmu
 
     host = WorkerFmu.__new__(WorkerFmu)
     host.reply_timeout, host.setup_timeout, host._in_setup = None, 600.0, True
-    host._slowest, host._slowest_before = 0.0, 0.0
+    host.replies = RecentSlowest()
     assert host.reply_deadline()[0] == 600.0                     # first calls: the generous allowance
     host._in_setup = False
-    assert host.reply_deadline()[0] == REPLY_TIMEOUT_FLOOR       # fast steps: the floor
-    host._slowest_before = 0.5
+    assert host.reply_deadline()[0] == DEADLINE_FLOOR            # fast steps: the floor
+    host.replies.before = 0.5
     timeout, why = host.reply_deadline()
     assert timeout == 50.0 and "0.5 s" in why and "worker_timeout" in why
     host.reply_timeout = 2.0

@@ -227,7 +227,7 @@ def test_a_duration_off_the_step_grid_is_a_usage_error_on_the_command_line(built
 def test_default_scene_creates_no_energy_and_warns_only_to_ease_off(default_scene_run):
     """Issue 12: the passivity observer's port energy (the work the catheter has done on the
     contact) never goes negative, and the only message is the order to ease off. Measured over
-    60 s (README): final 1.8e-4 J / 1.4e-4 J at 1000 / 3000 N/m, never below 0; it used to drift
+    60 s (docs/performance.md): final 1.8e-4 J / 1.4e-4 J at 1000 / 3000 N/m, never below 0; it used to drift
     to -0.090 J with a "created energy" warning at 7.4 s (the crease's relay, see
     haptic_fmu.narrow_phase)."""
     summary, out = default_scene_run
