@@ -43,12 +43,12 @@ def probe_force(local, t, point, velocity=(0.0, 0.0, 0.0), *, stiffness=500.0, d
     face, w, n = np.full(1, -1, np.int64), np.zeros((1, 3)), np.zeros((1, 3))
     depth, rate, s, q, near = np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((1, 3)), np.zeros(1)
     narrow_phase.proximity(pos, local.velocities, local.triangles, local.node_ptr[:2], local.node_faces,
-                           np.zeros(1, np.int64), local.seg_faces, p, v, float(radius), 0.0, np.zeros(1, np.int8),
-                           np.zeros((1, 3)), face, w, n, depth, rate, s, q, near,
-                           np.zeros((max(local.node_faces.size, 1), 8)))
+                           np.zeros(1, np.int64), local.seg_faces, p, v, float(radius), 0.0, np.full(1, np.inf),
+                           np.zeros(1, np.int8), np.zeros((1, 3)), face, w, n, depth, rate, s, q, near,
+                           np.zeros((max(local.node_faces.size, 1), narrow_phase.WORK_COLUMNS)))
     fmag = np.zeros(1)
     code = law_code(law)
-    penalty_kernels.penalty_forces(face, depth, rate, code, float(stiffness), float(damping),
+    penalty_kernels.penalty_forces(face, depth, rate, np.zeros(1), code, float(stiffness), float(damping),
                                    float(penalty_length), fmag)
     node_force = np.zeros((1, 3))
     tissue = np.zeros((local.vertices.size, 3))
@@ -175,3 +175,70 @@ def controller_damping(energy: float, velocity, period: float, max_damping: floa
     if energy >= 0.0 or vv <= 0.0:
         return 0.0
     return min(-energy / (period * vv), max_damping)
+
+
+# ---------------------------------------------------------------------------- device limit, contact cycles
+# Plain references of `haptic_fmu.device.limit_force` and of the per-contact-cycle judgement that
+# `haptic_fmu.passivity.port_step` computes in one kernel.
+
+def limit_force_reference(force, prev, max_force, max_force_rate, dt):
+    """The device limit in plain numpy: (rendered node forces (n,3), rate limited, magnitude limited).
+
+    The port's total force moves at most max_force_rate * dt from the previous rendered total (every
+    node blended toward its request by the same factor), then is scaled into |F| <= max_force
+    (every node by the same factor)."""
+    f = np.array(force, np.float64).reshape(-1, 3)
+    p = np.array(prev, np.float64).reshape(-1, 3)
+    change = np.linalg.norm(f.sum(axis=0) - p.sum(axis=0))
+    rate = bool(change > max_force_rate * dt)
+    if rate:
+        f = p + (max_force_rate * dt / change) * (f - p)
+    magnitude = np.linalg.norm(f.sum(axis=0))
+    clamp = bool(magnitude > max_force)
+    if clamp:
+        f = f * (max_force / magnitude)
+    return f, rate, clamp
+
+
+class ContactCycles:
+    """Contact cycles of a haptic port in plain Python: feed every sample's position, contact force
+    (before the controller and the device limit) and rendered force (held until the next sample).
+
+    A cycle opens at a sample with a nonzero contact force and closes at the first sample where the
+    contact force and the rendered force are both zero; over it the work of each held force,
+    w = -F(j-1) . (x(j) - x(j-1)), is energy in (w > 0) or out. `closed` lists the cycles as dicts
+    (t_start, t_end, energy_in, energy_out, abs_work, samples, active); active when
+    out - in > tolerance (in + out) + 2 (3 n + samples + 1) 2^-53 abs_work."""
+
+    def __init__(self, tolerance=1e-6):
+        self.tolerance = tolerance
+        self.closed = []
+        self.open = None
+        self._x = None
+        self._f = None
+
+    def update(self, t, position, contact_force, rendered_force):
+        x = np.array(position, np.float64).reshape(-1, 3)
+        if self.open is not None and self._x is not None:
+            products = self._f * (x - self._x)
+            w = -float(products.sum())
+            if w > 0:
+                self.open["energy_in"] += w
+            else:
+                self.open["energy_out"] -= w
+            self.open["abs_work"] += float(np.abs(products).sum())
+            self.open["samples"] += 1
+        contact = bool(np.any(np.asarray(contact_force) != 0))
+        held = bool(np.any(np.asarray(rendered_force) != 0))
+        if self.open is not None and not contact and not held:
+            c = self.open
+            floor = 2.0 * (3 * x.shape[0] + c["samples"] + 1) * 2.0 ** -53 * c["abs_work"]
+            c["threshold"] = self.tolerance * (c["energy_in"] + c["energy_out"]) + floor
+            c["active"] = c["energy_out"] - c["energy_in"] > c["threshold"]
+            c["t_end"] = t
+            self.closed.append(c)
+            self.open = None
+        elif self.open is None and contact:
+            self.open = dict(t_start=t, energy_in=0.0, energy_out=0.0, abs_work=0.0, samples=0)
+        self._x = x
+        self._f = np.array(rendered_force, np.float64).reshape(-1, 3)

@@ -124,12 +124,14 @@ def _finite_difference_stiffness(model, t, tool, h=1e-7):
 @pytest.mark.parametrize("damping", [0.0, 0.5])
 def test_tip_stiffness_is_the_derivative_of_the_tip_force(damping):
     """The Contact FMU's tip_stiffness, which the catheter integrates its passive tip against:
-    K = -d tip_force / d tip = s n n^T with s = k + b / dt against the rigid local model, and
-    s / (1 + s w), w = sum w_i^2 c, against a wall that yields through W = c I (a probe inside a
-    face); checked against central differences of the model's own force (exactly on the rigid
+    K = -d tip_force / d tip = (s + s_tool) n n^T with s = k + b / dt and s_tool = k / 2 (the
+    energy-consistent hold adds k (rate dt) / 2, the rate differenced over the step) against the
+    rigid local model, and (s + s_tool) / (1 + s w), w = sum w_i^2 c, against a wall that yields
+    through W = c I (a probe inside a face: the yielding answers the depth, not the predicted
+    motion); checked against central differences of the model's own force (exactly on the rigid
     wall; along the normal on the yielding one)."""
     k, c, d, dt = 2000.0, 1e-3, 0.0008, 1e-3
-    s = k + damping / dt
+    s, s_tool = k + damping / dt, k / 2
     zz = np.diag([0.0, 0.0, 1.0])
     # a catheter centerline whose tip sphere (1 mm) presses 0.4 mm into the flat wall (hold)
     pos, tri, _ = grid_wall()
@@ -139,8 +141,9 @@ def test_tip_stiffness_is_the_derivative_of_the_tip_force(damping):
     tool = np.array([[0.0031, 0.0017, 0.0046], [0.0031, 0.0017, 0.0026], [0.0031, 0.0017, 0.0006]])
     model.step(0.0, dt, tool)
     out = copy.deepcopy(model).step(dt, dt, tool)
-    np.testing.assert_allclose(out.tip_stiffness, s * zz, rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(_finite_difference_stiffness(model, dt, tool), s * zz, rtol=1e-6, atol=1e-3)
+    np.testing.assert_allclose(out.tip_stiffness, (s + s_tool) * zz, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(_finite_difference_stiffness(model, dt, tool), (s + s_tool) * zz, rtol=1e-6,
+                               atol=1e-3)
     # a probe inside a face of a yielding wall
     point = np.array([[0.0031, 0.0017, -d]])
     model = ContactModel(tri, pos.shape[0], 1, ContactParameters(
@@ -155,8 +158,8 @@ def test_tip_stiffness_is_the_derivative_of_the_tip_force(damping):
     normal = out.tip_force / np.linalg.norm(out.tip_force)
     assert normal[2] > 0.999
     np.testing.assert_allclose(K, np.trace(K) * np.outer(normal, normal), rtol=1e-9, atol=1e-9)
-    assert np.trace(K) == pytest.approx(s / (1.0 + s * c * np.sum(w ** 2)), rel=5e-3)   # weights on the moved face
-    assert np.trace(K) < 0.5 * s                                   # the wall's yielding halves it (or more)
+    assert np.trace(K) == pytest.approx((s + s_tool) / (1.0 + s * c * np.sum(w ** 2)), rel=5e-3)  # on the moved face
+    assert np.trace(K) < 0.5 * (s + s_tool)                                  # the wall's yielding halves it (or more)
     # along the normal as the model's own force changes; the tangential terms of K leave out how
     # the compliance under the contact point (sum w_i^2 c) varies as the point slides over the face
     fd = _finite_difference_stiffness(model, dt, point)
@@ -207,7 +210,7 @@ def test_vertices_without_compliance_are_rigid_and_no_W_renders_as_hold():
 
 
 # ---------------------------------------------------------------------------- the solve
-def reference_solve(depth, rate, A, W, g_prev, law, k, b, d0, dt):
+def reference_solve(depth, rate, A, W, g_prev, law, k, b, d0, dt, hold):
     """Plain numpy: f with delta = depth - A^T W (g(f) - g_prev), g(f) = -A f, rate' = rate +
     (delta - depth)/dt, f_i = law(delta_i, rate'_i) where delta_i > 0 and f_i = 0 elsewhere (active
     sets enumerated; each one solved with fsolve, the consistent one returned)."""
@@ -216,7 +219,9 @@ def reference_solve(depth, rate, A, W, g_prev, law, k, b, d0, dt):
     delta0 = depth - A.T @ W @ g_prev
 
     def law_f(delta, r):
-        return np.array([penalty_kernels.penalty_magnitude(x, y, law, k, b, d0) for x, y in zip(delta, r)])
+        # the hold's predicted depth change comes from the tool's rate, not the wall's yielding
+        return np.array([penalty_kernels.penalty_magnitude(x, y, law, k, b, d0, z * hold)
+                         for x, y, z in zip(delta, r, rate)])
 
     found = []
     for size in range(m, -1, -1):
@@ -274,7 +279,8 @@ def test_compliance_solve_matches_dense_reference(law):
                 s = slot[tri[faces[i], j]]
                 if s >= 0:
                     A[3 * s:3 * s + 3, i] += weights[i, j] * normals[i]
-        expected = reference_solve(depth, rate, A, W, g_prev, law, k, b, d0, dt)
+        hold = dt if trial % 2 else 0.0             # the energy-consistent hold, and the sampled law
+        expected = reference_solve(depth, rate, A, W, g_prev, law, k, b, d0, dt, hold)
         # the kernel, on primitives 0..m-1 plus two without contact (face -1)
         n_prim = m + 2
         face_arr = np.concatenate([faces, [-1, -1]]).astype(np.int64)
@@ -286,7 +292,7 @@ def test_compliance_solve_matches_dense_reference(law):
         work = (np.zeros(n_prim, np.int64), np.zeros((n_prim, 3 * p)), np.zeros((n_prim, n_prim)),
                 np.zeros((n_prim, n_prim)), np.zeros(n_prim), np.zeros(n_prim), np.zeros(n_prim))
         iterations = rendering_kernels.compliance_forces(face_arr, w_arr, n_arr, d_arr, r_arr, tri, slot, W, g_prev,
-                                                         law, k, b, d0, dt, 30, 1e-13, fmag, g_out, *work)
+                                                         r_arr * hold, law, k, b, d0, dt, 30, 1e-13, fmag, g_out, *work)
         assert iterations > 0
         np.testing.assert_allclose(fmag[:m], expected, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(g_out, -A @ expected, rtol=1e-9, atol=1e-12)
@@ -532,7 +538,8 @@ def test_damped_onset_rests_the_wall_at_the_tool():
     work = (np.zeros(1, np.int64), np.zeros((1, 3)), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1), np.zeros(1),
             np.zeros(1))
     iterations = rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3),
-                                                     penalty_kernels.LAW_LINEAR, k, b, 1e-3, dt, 8, 1e-13, fmag,
+                                                     np.zeros(1), penalty_kernels.LAW_LINEAR, k, b, 1e-3, dt, 8, 1e-13,
+                                                     fmag,
                                                      g_out, *work)
     assert iterations > 8                                     # solved by the fallback
     assert fmag[0] == pytest.approx(d / c, rel=1e-12) and depth[0] == pytest.approx(0.0, abs=1e-18)
@@ -540,7 +547,8 @@ def test_damped_onset_rests_the_wall_at_the_tool():
     np.testing.assert_allclose(g_out, [0.0, 0.0, -d / c], rtol=1e-12)
     # slower: the law's own answer, (k + b/dt) delta + b (rate - d/dt) = (d - delta) / c
     depth, rate, face = np.array([d]), np.array([0.01]), np.array([0], np.int64)
-    rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3), penalty_kernels.LAW_LINEAR,
+    rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3), np.zeros(1),
+                                        penalty_kernels.LAW_LINEAR,
                                         k, b, 1e-3, dt, 8, 1e-13, fmag, g_out, *work)
     delta = (d / c - b * (0.01 - d / dt)) / (k + b / dt + 1 / c)
     assert depth[0] == pytest.approx(delta, rel=1e-12) and fmag[0] == pytest.approx((d - delta) / c, rel=1e-12)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import haptic_helpers as helpers
-from haptic_fmu import penalty
+from haptic_fmu import narrow_phase, penalty
 from haptic_fmu.model import ContactModel, ContactParameters
 
 RNG = np.random.default_rng(20260521)
@@ -210,21 +210,29 @@ def test_extrapolate_vs_hold_on_moving_triangle():
 
 
 # ---------------------------------------------------------------------------- contact model
-def test_probe_pushed_into_tube_wall_gives_k_depth_along_inward_normal():
+@pytest.mark.parametrize("energy_consistent", [False, True])
+def test_probe_pushed_into_tube_wall_gives_k_depth_along_inward_normal(energy_consistent):
+    """k depth along the facet's normal; with the energy-consistent hold, k (depth + step / 2): the
+    mean of the law over the depths of the coming hold interval at the probe's constant speed."""
     pos, tri = tube_surface(walls="inner")
     n_around = 32
-    params = ContactParameters(stiffness=700.0, damping=0.0, tool="probe", local_model="hold")
+    params = ContactParameters(stiffness=700.0, damping=0.0, tool="probe", local_model="hold",
+                               energy_consistent=energy_consistent)
     model = ContactModel(tri, pos.shape[0], 1, params)
     model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
     e, cosine = facet_mid_direction(n_around, facet=5)
     plane = 0.010 * cosine                              # distance of the facet plane from the axis
     dt = 1e-3
+    step = 0.0001 if energy_consistent else 0.0            # the depth change each sample predicts
     for i, depth in enumerate(np.linspace(-0.002, 0.0015, 36)):
         out = model.step(i * dt, dt, (plane + depth) * e + [0, 0, 0.001])
-        if depth <= 0:
+        if depth + step < -1e-12 or (not step and depth <= 0):
             assert out.contact_count == 0 and np.all(out.tool_force == 0.0)
+        elif depth <= 1e-15 and step:                       # it will touch within the coming step: the law's
+            mean = 700.0 * max(depth + step, 0.0) ** 2 / (2 * step)   # mean over it (the interval of first touch)
+            np.testing.assert_allclose(out.tool_force, -mean * e, rtol=1e-6, atol=1e-15)
         else:
-            np.testing.assert_allclose(out.tool_force, -700.0 * depth * e, rtol=1e-9, atol=1e-15)
+            np.testing.assert_allclose(out.tool_force, -700.0 * (depth + step / 2) * e, rtol=1e-9, atol=1e-15)
             assert out.penetration_depth == pytest.approx(depth, rel=1e-9)
             assert out.contact_count == 1
             np.testing.assert_allclose(out.tissue_contact_force.sum(0), -out.tool_force, atol=1e-15)
@@ -237,7 +245,8 @@ def test_contact_kept_deeper_than_the_margin():
     pos, tri = tube_surface(walls="inner", n_around=32)
     margin = 0.002
     model = ContactModel(tri, pos.shape[0], 1, ContactParameters(
-        stiffness=500.0, damping=0.0, tool="probe", local_model="hold", margin=margin))
+        stiffness=500.0, damping=0.0, tool="probe", local_model="hold", energy_consistent=False,
+        margin=margin))                                  # the geometry: the law at the sampled depth
     model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
     e, cosine = facet_mid_direction(32, facet=9)
     plane = 0.010 * cosine
@@ -341,25 +350,51 @@ def test_centerline_contacts_balance_and_capsule_force():
                                rtol=1e-9)
 
 
-def reference_probe_contact(p, v, positions, triangles, k, b):
-    """Plain numpy, memoryless: the nearest face over the whole surface decides; (force, tissue)."""
-    best = (np.inf, None, None)
-    for f, (ia, ib, ic) in enumerate(triangles):
-        a, bb, c = positions[ia], positions[ib], positions[ic]
-        q = reference_closest_point(p, a, bb, c)
-        d = np.linalg.norm(p - q)
-        if d < best[0]:
-            best = (d, f, q)
-    _, f, q = best
-    a, bb, c = positions[triangles[f]]
-    n = np.cross(bb - a, c - a)
-    n /= np.linalg.norm(n)
-    dist = (p - q) @ n
+def reference_probe_contact(p, v, positions, triangles, k, b, trust=0.0015, side=None, hold=0.0):
+    """Plain numpy: the nearest face over the whole surface (of the faces facing `side`, a
+    remembered entry normal, when given), the sign from the angle-weighted pseudo-normal of the
+    nearest feature, the normal blended over the faces within NORMAL_BLEND_LENGTH of the nearest;
+    (force, tissue)."""
+    if side is not None:
+        tris = positions[triangles]
+        facing = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]) @ side > 0
+        force, tissue = reference_probe_contact(p, v, positions, triangles[facing], k, b, trust, hold=hold)
+        return force, tissue
+    tris = positions[triangles]
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    qs = np.array([reference_closest_point(p, *t) for t in tris])
+    dist = np.linalg.norm(qs - p, axis=1)
+    f = int(np.argmin(dist))
+    q, d = qs[f], dist[f]
+    pseudo = np.zeros(3)
+    for g in np.flatnonzero(np.linalg.norm(qs - q, axis=1) <= 1e-12):
+        corner = np.flatnonzero(np.linalg.norm(tris[g] - q, axis=1) <= 1e-12)
+        weight = 1.0
+        if corner.size:
+            v0 = tris[g, corner[0]]
+            e1, e2 = tris[g, (corner[0] + 1) % 3] - v0, tris[g, (corner[0] + 2) % 3] - v0
+            weight = np.arccos(e1 @ e2 / np.linalg.norm(e1) / np.linalg.norm(e2))
+        pseudo += weight * normals[g]
     tissue = np.zeros_like(positions)
-    if dist >= 0:
+    if (p - q) @ pseudo >= 0 or d > trust:
         return np.zeros(3), tissue
-    force = -k * dist * n - b * (v @ n) * n
+    reach = d + narrow_phase.NORMAL_BLEND_LENGTH
+    blend = []                                  # (weight, normal), coplanar faces once
+    for g in np.flatnonzero((dist < reach) & (normals @ normals[f] > 0)):
+        same = [i for i, (_, n) in enumerate(blend) if n @ normals[g] > 1 - 1e-9]
+        if same:
+            blend[same[0]] = (max(blend[same[0]][0], reach - dist[g]), blend[same[0]][1])
+        else:
+            blend.append((reach - dist[g], normals[g]))
+    n = sum(w * m for w, m in blend)
+    n /= np.linalg.norm(n)
+    rate = -(v @ n)
+    ahead = rate * hold                         # the energy-consistent hold: the mean over [d, d + ahead]
+    elastic = k * (d + 0.5 * ahead) if d + ahead >= 0 else k * d * d / (2 * -ahead)
+    force = (elastic + b * rate) * n
     # barycentric weights of q by least squares on the triangle's edges
+    a, bb, c = tris[f]
     w12 = np.linalg.lstsq(np.stack([bb - a, c - a], axis=1), q - a, rcond=None)[0]
     for w, vertex in zip((1 - w12.sum(), *w12), triangles[f]):
         tissue[vertex] -= w * force
@@ -379,7 +414,7 @@ def test_probe_matches_plain_reference_on_thick_tube():
         p = np.array([r * np.cos(phi), r * np.sin(phi), RNG.uniform(-0.015, 0.015)])
         v = RNG.normal(size=3) * 0.05
         out = model.step(0.0, 1e-3, p, v)
-        force, tissue = reference_probe_contact(p, v, pos, tri, k, b)
+        force, tissue = reference_probe_contact(p, v, pos, tri, k, b, hold=1e-3)
         np.testing.assert_allclose(out.tool_force, force, rtol=1e-9, atol=1e-14)
         np.testing.assert_allclose(out.tissue_contact_force, tissue, rtol=1e-9, atol=1e-14)
         contacts += out.contact_count
@@ -390,7 +425,7 @@ def test_probe_matches_plain_reference_on_thick_tube():
 def test_fast_probe_crossing_the_wall_in_one_step(detection):
     pos, tri = tube_surface(thickness=0.0015)
     params = ContactParameters(stiffness=500.0, damping=0.0, tool="probe", detection=detection,
-                               local_model="hold")
+                               local_model="hold", energy_consistent=False)   # the geometry: the sampled law
     model = ContactModel(tri, pos.shape[0], 1, params)
     model.set_tissue_frame(0.0, pos, np.zeros_like(pos))
     e, cosine = facet_mid_direction(32, facet=7)
@@ -428,7 +463,12 @@ def test_wall_jumping_over_static_probe_between_frames(interpolation):
     out = results["continuous"]
     depth = shift @ -e - 0.0002                      # the inner facet plane moved past the probe
     assert out.contact_count == 1
-    np.testing.assert_allclose(out.tool_force, 500.0 * depth * -e, rtol=1e-9, atol=1e-12)
+    assert out.penetration_depth == pytest.approx(depth, rel=1e-12)
+    # the probe remembers the inner side it was on (it is now beyond the outer wall): the force is
+    # that of the inner faces, its direction blended with a neighbouring facet 0.083 mm farther
+    force, _ = reference_probe_contact(probe, np.zeros(3), pos + shift, tri, 500.0, 0.0, trust=np.inf, side=-e)
+    np.testing.assert_allclose(out.tool_force, force, rtol=1e-9, atol=1e-12)
+    assert np.degrees(np.arccos(force @ -e / np.linalg.norm(force))) < 360 / 32
 
 
 def test_get_state_set_state_replays_exactly():

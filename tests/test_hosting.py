@@ -95,12 +95,23 @@ def test_contact_worker_matches_in_process_bitwise(contact_fmu):
     assert 20 < touching.sum() < 180
     assert np.all(np.linalg.norm(force[~touching], axis=1) == 0.0)
     # while the tool moves out (first half) the wall pushes it back towards the axis (-x); while
-    # it retracts, penalty damping may pull slightly. The tissue always gets the reaction.
+    # it retracts, penalty damping may pull slightly. The tissue always gets the reaction, and the
+    # device its share of it: all of it up to the device's 7.9 N, then 7.9 N (the 2 mm deep piece
+    # asks for up to 8.8 N)
     pushing = touching & (np.arange(len(local)) <= 100)
     assert pushing.sum() > 10 and np.all(force[pushing, 0] < 0.0)
+    limited = 0
     for r in (r for r, t in zip(local, touching) if t):
         reaction = r["tissue_contact_force"].reshape(-1, 3).sum(axis=0)
-        np.testing.assert_allclose(reaction, -r["tool_force"], rtol=1e-9, atol=1e-12)
+        if np.linalg.norm(reaction) <= 7.9:
+            np.testing.assert_allclose(reaction, -r["tool_force"], rtol=1e-9, atol=1e-12)
+        else:
+            limited += 1
+            assert np.linalg.norm(r["tool_force"]) == pytest.approx(7.9, rel=1e-12)
+            # along the reaction, but for the direction's change within a step (the rate limit
+            # blends in the previous sample's force)
+            np.testing.assert_allclose(r["tool_force"] / 7.9, -reaction / np.linalg.norm(reaction), atol=1e-6)
+    assert limited > 0
     for a, b in zip(local, remote):
         assert a.keys() == b.keys() == set(CONTACT_OUTPUTS)
         for name in a:

@@ -47,3 +47,27 @@ def test_an_output_without_a_range_is_held_to_the_range_of_the_inputs_it_feeds()
                                                   ("other.compliance", port(-5.0, 100.0))])
     assert (low, high) == (-5.0, 100.0) and "other.compliance" in why
     assert plausible_range(port(0.0, 1.0), [("contact.compliance", port(-1e4, 1e4))])[:2] == (0.0, 1.0)
+
+
+@pytest.mark.parametrize("name, default, inside", [
+    ("max_force", 7.9, (3.3, 22.0, 1000.0)),        # Touch, PHANTOM Premium 3.0, unlimited for contact studies
+    ("max_force_rate", 1e4, (5e3, 1e7)),            # the fastest legitimate change (10 kN/m x 0.5 m/s), unlimited
+    ("passivity_cycle_tolerance", 1e-3, (0.0, 1.0)),
+])
+def test_the_device_and_cycle_limits_hold_their_defaults_and_the_devices(contact_fmu, name, default, inside):
+    """Contact's device limit (max_force, max_force_rate) and the per-cycle passivity tolerance have
+    ranges in the limit table holding the default and the settings the documentation names."""
+    low, high = _range(contact_fmu, name)
+    variable = {v.name: v for v in read_model_description(str(contact_fmu)).modelVariables}[name]
+    assert float(variable.start) == default
+    assert all(low <= x <= high for x in (default, *inside)), (low, high)
+
+
+def test_the_rendered_force_limit_lies_within_what_the_run_calls_plausible():
+    """The largest max_force Contact accepts (1 kN) is within the orchestrator's plausible force
+    (1e4 N): an unlimited study's force is not reported as implausible for the limit alone."""
+    from haptic_fmu.fmu import LIMITS
+
+    from orchestration.observers import PLAUSIBLE_MAGNITUDE
+
+    assert LIMITS["max_force"].maximum < PLAUSIBLE_MAGNITUDE["N"][0]

@@ -89,9 +89,11 @@ def test_fast_tool_against_a_rigid_plane_keeps_contact(study):
             assert row["outcome"] == "stable"
         else:  # contact kept, and the user is told discrete detection can tunnel at this speed
             assert row["outcome"] == "detected" and "tunnelling" in row["message"], row["message"]
-        # The probe ends 19.5 mm behind the plane: F = K d = 800 N/m x 19.5 mm.
+        # The probe ends 19.5 mm behind the plane, at rest: F = K d = 800 N/m x 19.5 mm (while it
+        # moves at 10 m/s the energy-consistent hold adds K x 5 mm, half a sample's motion)
         assert row["peak_penetration_m"] == pytest.approx(0.0195, rel=1e-6)
-        assert row["peak_tool_force_N"] == pytest.approx(800.0 * 0.0195, rel=1e-6)
+        assert row["final_tool_force_N"] == pytest.approx(800.0 * 0.0195, rel=1e-6)
+        assert row["peak_tool_force_N"] <= 800.0 * (0.0195 + 0.005) * (1 + 1e-6)
 
 
 def test_haptic_wall_energy(study):

@@ -312,6 +312,7 @@ def _stream_numbers(sim) -> dict:
             force = _norm(columns, "tool_force")
             if force is not None and force.size:
                 out["peak_tool_force_N"] = float(np.nanmax(force))
+                out["final_tool_force_N"] = float(force[-1])
             if "penetration_depth" in columns and len(columns["penetration_depth"]):
                 out["peak_penetration_m"] = float(np.nanmax(columns["penetration_depth"]))
             if "contact_count" in columns:
@@ -367,6 +368,8 @@ tool_radius = 0.0
 margin = 0.01
 detection = "{detection}"
 local_model = "hold"
+max_force = 1000.0              # the contact alone: no device limit (its 15.6 N is what the row measures)
+max_force_rate = 1e7
 
 [[connection]]
 from = "wall.triangles"
@@ -400,8 +403,8 @@ def _run_plane(point: dict) -> dict:
         summary, sim = run_point(str(scene), {}, duration=duration)
     numbers = _stream_numbers(sim)
     finite = numbers.pop("_finite")
-    # The probe ends 19.5 mm behind the plane: a detector that keeps the contact reports that
-    # depth and K * depth = 15.6 N; one that lost it (tunnelled) reports nothing.
+    # The probe ends 19.5 mm behind the plane, at rest: a detector that keeps the contact reports
+    # that depth and K * depth = 15.6 N; one that lost it (tunnelled) reports nothing.
     depth = numbers.get("peak_penetration_m", 0.0)
     numbers["final_depth_behind_plane_m"] = 0.0195
     numbers["tunnelled"] = bool(depth < 0.5 * 0.0195)
@@ -417,7 +420,12 @@ def _run_plane(point: dict) -> dict:
 # -- haptic virtual wall ------------------------------------------------------------------------
 
 def _run_haptic(point: dict) -> dict:
-    overrides = {"contact.stiffness": point["stiffness"], "contact.passivity_controller": point["passivity_controller"]}
+    # The loop with the device's damping is judged (Colgate), not the contact alone: its sampled,
+    # undamped wall creates about 5 % of each contact cycle's exchange, which the device's damping
+    # takes out below the bound, so the per-cycle report is off; and the device limit is lifted
+    # (the rows measure the wall, not the PHANTOM's 7.9 N).
+    overrides = {"contact.stiffness": point["stiffness"], "contact.passivity_controller": point["passivity_controller"],
+                 "contact.passivity_cycle_tolerance": 1.0, "contact.max_force": 1000.0, "contact.max_force_rate": 1e7}
     summary, sim = run_point("virtual_wall", overrides, observe={"contact": ["passivity_energy"]})
     numbers = _stream_numbers(sim)
     finite = numbers.pop("_finite")

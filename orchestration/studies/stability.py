@@ -53,7 +53,10 @@ WINDOW = 40                     # steps per energy window of the hold experiment
 
 # -- virtual wall: one run ---------------------------------------------------------------------
 def _wall_overrides(K, B, b_dev, T, mass, times, forces, x0) -> dict:
+    # the sampled wall itself is studied (the scene's energy_consistent = false): no device limit
+    # shapes its force (a wall held to 7.9 N lets the operator push the device through it)
     return {
+        "contact.max_force": 1000.0, "contact.max_force_rate": 1e7,
         "contact.stiffness": float(K), "contact.damping": float(B),
         "device.damping": float(b_dev), "device.mass": float(mass),
         "device.step": float(T), "contact.step": float(T),

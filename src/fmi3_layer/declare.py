@@ -41,6 +41,7 @@ SI_UNITS: dict[str, dict[str, int]] = {
     "Pa.s": dict(kg=1, m=-1, s=-1),
     "m/s": dict(m=1, s=-1),
     "N/m": dict(kg=1, s=-2),
+    "N/s": dict(kg=1, m=1, s=-3),
     "m/N": dict(kg=-1, s=2),
     "N.s/m": dict(kg=1, s=-1),
     "rad": dict(rad=1),

@@ -17,8 +17,8 @@ def enable_stable_numba_cache(package_dir, module_name: str) -> None:
     Importers extract an FMU to a new temporary folder on every load, and numba's own cache is
     keyed by the source file's path, so every load would compile the kernels again (seconds per
     instance). This adds a cache locator, for source files inside ``package_dir`` only, keyed by
-    the file's content and by ``module_name``, the name the package is imported under (numba's
-    cached code refers to its module by name): ``$AAA_COSIM_NUMBA_CACHE`` or
+    the content of the whole package and by ``module_name``, the name the package is imported under
+    (numba's cached code refers to its module by name): ``$AAA_COSIM_NUMBA_CACHE`` or
     ``~/.cache/aaa-cosim/numba``. Where that
     folder cannot be written, numba falls back to its usual locators. Must run before the
     package's kernels are imported (the FMI runtime does that).
@@ -33,9 +33,17 @@ def enable_stable_numba_cache(package_dir, module_name: str) -> None:
     if getattr(caching, marker, False):
         return
 
+    # A kernel's compiled code holds the kernels it calls from other modules of the package, and
+    # numba checks only the caller's own file: keyed by one file, a changed callee in another file
+    # would run stale. The package's digest covers every file a kernel can call.
+    package = hashlib.sha256()
+    for source in sorted(Path(package_dir).rglob("*.py")):
+        package.update(source.relative_to(package_dir).as_posix().encode() + b"\0" + source.read_bytes())
+    package_digest = package.hexdigest()
+
     class ContentAddressedLocator(caching._CacheLocator):
         def __init__(self, py_func, py_file):
-            digest = hashlib.sha256(Path(py_file).read_bytes()).hexdigest()[:24]
+            digest = hashlib.sha256(package_digest.encode() + Path(py_file).read_bytes()).hexdigest()[:24]
             self._digest = digest
             self._lineno = py_func.__code__.co_firstlineno
             self._path = root / f"{module_name}-{Path(py_file).stem}-{digest}"

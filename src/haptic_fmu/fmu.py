@@ -23,8 +23,9 @@ DEFAULT_SURFACE_FILE = Path(__file__).resolve().parent / "default_tissue_surface
 _defaults = ContactParameters()
 
 #: The plausible range of every number an importer gives this FMU, and why (DESIGN.md section 7:
-#: haptic devices render at most 5000 N/m and 12 N). Values outside are refused (fmi3Error naming the
-#: variable, the value and this range) instead of rendering an absurd force.
+#: haptic devices render at most 5000 N/m and 12 N; the device's own limit is max_force). Values
+#: outside are refused (fmi3Error naming the variable, the value and this range) instead of
+#: rendering an absurd force.
 LIMITS = {
     "stiffness": Limit(1e-3, 1e6, "devices render up to 5000 N/m and tissue penalties up to about 1e5 N/m; 1e6 N/m "
                                   "pushes 1 kN back for 1 mm of penetration"),
@@ -35,6 +36,15 @@ LIMITS = {
                                "every triangle a candidate"),
     "passivity_max_damping": Limit(1e-6, 1e4, "the passivity controller's damping stays below 2 m/T (about 20 N s/m "
                                               "for a 10 g device at 1 kHz)"),
+    # device.py: the PHANTOM Desktop's 7.9 N by default; a study of the contact alone may lift the limits out of reach
+    "max_force": Limit(0.01, 1000.0, "haptic devices exert 3-40 N (Touch 3.3 N, PHANTOM Desktop 7.9 N, Premium 3.0 "
+                                     "22 N); below 10 mN nothing is felt; up to 1 kN to study the contact unlimited"),
+    "max_force_rate": Limit(1.0, 1e7, "10 N per 1 ms step by default, twice a 10 kN/m wall under a 0.5 m/s hand; below "
+                                      "1 N/s a contact force takes seconds to build; 1e7 N/s (10 kN per step) limits "
+                                      "nothing, to study the contact unlimited"),
+    "passivity_cycle_tolerance": Limit(0.0, 1.0, "the share of its exchanged energy a contact cycle may create: 0 "
+                                                 "reports all but round-off, 1 reports nothing (a cycle cannot "
+                                                 "create more than it exchanged)"),
     "compliance_force_lag": Limit(1, 1000, "frames between a haptic interval and the tissue frame showing its force: "
                                            "2 with a Jacobi connection and an average"),
     "n_surface_nodes": Limit(3, 2_000_000, "surface nodes of a tissue mesh the Tissue FMU builds"),
@@ -59,6 +69,11 @@ FLOAT_PARAMETERS = [
     ("tool_radius", "m", "radius of the catheter capsules (tool = centerline)"),
     ("margin", "m", "broad-phase margin of the local model"),
     ("passivity_max_damping", "N.s/m", "cap of the passivity controller's damping"),
+    ("max_force", "N", "the haptic device's maximum force: tool_force never exceeds it (force_limited says when it "
+                       "engages); default the PHANTOM Desktop / Touch X's 7.9 N"),
+    ("max_force_rate", "N/s", "the fastest change of tool_force between samples (|F(j) - F(j-1)| <= rate x step)"),
+    ("passivity_cycle_tolerance", None, "the share of its exchanged energy a contact cycle may create before the "
+                                        "passivity observer reports it active (active_cycles)"),
 ]
 STRING_PARAMETERS = [
     ("penalty_law", "linear, quadratic or hunt_crossley"),
@@ -89,6 +104,10 @@ VARIABLES = (
     *(parameter(name, str(getattr(_defaults, name)), text) for name, text in STRING_PARAMETERS),
     parameter("passivity_controller", bool(_defaults.passivity_controller),
               "add damping when the passivity observer sees energy created"),
+    parameter("energy_consistent", bool(_defaults.energy_consistent),
+              "hold the penalty law's mean over the depths the tool's motion predicts for the step (a tap returns "
+              "the energy it took); false: the law at the sampled depth (the classic sampled wall, which creates "
+              "about K T / 2 v^2 per second)"),
     structural("n_surface_nodes", len(DEFAULT_POSITIONS), "tissue surface nodes (array size)"),
     structural("n_surface_triangles", len(DEFAULT_TRIANGLES), "tissue surface triangles (array size)"),
     structural("n_tool_points", 31, "tool points: catheter centerline points, or 1 for a probe"),
@@ -121,6 +140,14 @@ VARIABLES = (
     output("contact_energy", "penalty potential energy", "J"),
     output("passivity_energy", "energy into the environment through the haptic port (>= 0: passive)", "J"),
     output("contact_count", "number of active contacts", type="Int32"),
+    output("force_limited", "the device limit (max_force, max_force_rate) shaped tool_force at this step; tip_force "
+           "and tissue_contact_force keep the physical contact force", type="Boolean"),
+    output("force_limited_steps", "internal steps whose tool_force was limited, since the start", type="Int32"),
+    output("contact_cycles", "contact cycles completed (a touch and its release)", type="Int32"),
+    output("active_cycles", "contact cycles that returned more energy than they took (beyond "
+           "passivity_cycle_tolerance of the energy they exchanged and round-off)", type="Int32"),
+    output("last_cycle_energy", "energy into the environment over the last completed contact cycle, taken minus "
+           "returned (>= 0: passive)", "J"),
     output("patch_nodes", "surface nodes in or near the contact whose compliance the wall model needs (to "
            "Tissue), ascending, -1 padded", type="Int32", shape=("max_patch_nodes",)),
 )
@@ -132,7 +159,7 @@ class ContactFmu:
     def __init__(self, values):
         self.values = v = values
         params = ContactParameters(
-            passivity_controller=bool(v.passivity_controller),
+            passivity_controller=bool(v.passivity_controller), energy_consistent=bool(v.energy_consistent),
             max_patch_nodes=v.max_patch_nodes, compliance_force_lag=v.compliance_force_lag,
             **{name: float(getattr(v, name)) for name, _, _ in FLOAT_PARAMETERS},
             **{name: str(getattr(v, name)) for name, _ in STRING_PARAMETERS},
@@ -169,6 +196,11 @@ class ContactFmu:
         v.contact_count = out.contact_count
         v.contact_energy = out.contact_energy
         v.passivity_energy = out.passivity_energy
+        v.force_limited = out.force_limited
+        v.force_limited_steps = out.force_limited_steps
+        v.contact_cycles = out.contact_cycles
+        v.active_cycles = out.active_cycles
+        v.last_cycle_energy = out.last_cycle_energy
 
 
 DECLARATION = FmuDeclaration(

@@ -210,6 +210,13 @@ def max_displacement(a, b):
 
 
 @njit(cache=True)
+def max_displacement_rows(a, b, out):
+    """out[i] = Euclidean distance between rows i of a and b."""
+    for i in range(a.shape[0]):
+        out[i] = math.sqrt((a[i, 0] - b[i, 0]) ** 2 + (a[i, 1] - b[i, 1]) ** 2 + (a[i, 2] - b[i, 2]) ** 2)
+
+
+@njit(cache=True)
 def all_finite(a):
     """True when every entry of the (n,3) array is finite (the input check of the 1 kHz path)."""
     for i in range(a.shape[0]):

@@ -58,8 +58,9 @@ import numpy as np
 
 from . import aabb, aabb_kernels, ccd, narrow_phase, penalty_kernels
 from . import rendering_kernels
-from .geometry import all_finite, difference_velocity, max_displacement
-from .passivity import PassiveRenderer
+from .geometry import all_finite, difference_velocity, max_displacement, max_displacement_rows
+from .device import DEFAULT_MAX_FORCE_RATE, PHANTOM_DESKTOP_MAX_FORCE, REQUESTED_TIP, DeviceSpec, ForceLimiter
+from .passivity import DEFAULT_CYCLE_TOLERANCE, PassiveRenderer
 from .penalty import PENALTY_LAWS, law_code
 from .rendering import (FREE_MOTIONS, LOCAL_POLICIES, ComplianceError, LocalModel, WallCompliance,
                         check_compliance)
@@ -97,6 +98,7 @@ class ContactParameters:
     damping: float = 0.1               # b, N s/m
     penalty_law: str = "linear"        # "linear" | "quadratic" | "hunt_crossley" (see penalty.py)
     penalty_length: float = 1e-3       # d0, m (non-linear laws)
+    energy_consistent: bool = True     # hold the law's mean over the step's predicted depth change (penalty.py)
     detection: str = "continuous"      # "continuous" | "discrete"
     interpolation: str = "linear"      # tissue trajectories between frames for CCD: "linear" | "cubic"
     local_model: str = "compliance"    # "compliance" | "hold" | "extrapolate" (see rendering.py)
@@ -111,6 +113,10 @@ class ContactParameters:
     compliance_force_lag: int = 2      # frames between the haptic interval whose mean force the tissue applied
     #                                    and the frame showing it, when the tissue does not report the force
     #                                    (2: jacobi + average, the shipped scenes; 1: gauss-seidel + average)
+    max_force: float = PHANTOM_DESKTOP_MAX_FORCE       # N, the haptic device's maximum force (device.py)
+    max_force_rate: float = DEFAULT_MAX_FORCE_RATE     # N/s, the fastest change of the rendered force (device.py)
+    passivity_cycle_tolerance: float = DEFAULT_CYCLE_TOLERANCE  # share of a contact cycle's exchanged energy it
+    #                                    may create before the observer calls it active (passivity.py)
 
     def validate(self) -> "ContactParameters":
         def positive(name, example):
@@ -132,6 +138,15 @@ class ContactParameters:
         positive("frame_period", "give the tissue frame period in s, e.g. 1/30")
         positive("passivity_max_damping", "give the cap of the passivity controller's damping in N s/m, "
                                           "below 2 m/T for the device mass m and step T, e.g. 20")
+        positive("max_force", "give the haptic device's maximum force in N, e.g. 7.9 for a PHANTOM Desktop / "
+                              "Touch X (a larger value for a stronger device)")
+        positive("max_force_rate", "give the fastest change of the rendered force in N/s, e.g. 10000 (10 N per "
+                                   "1 ms step, twice a 10 kN/m wall under a hand at 0.5 m/s)")
+        tolerance = self.passivity_cycle_tolerance
+        if not (_is_real(tolerance) and math.isfinite(tolerance) and tolerance >= 0):
+            raise ContactParameterError(
+                f"passivity_cycle_tolerance must be a finite number >= 0 (got {tolerance!r}): the share of a contact "
+                "cycle's exchanged energy it may create before it is reported active, e.g. 1e-3")
         if not (_is_real(self.tool_radius) and math.isfinite(self.tool_radius)
                 and self.tool_radius >= 0):
             raise ContactParameterError(
@@ -147,6 +162,9 @@ class ContactParameters:
             value = getattr(self, name)
             if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
                 raise ContactParameterError(f"{name} must be an integer >= {low} (got {value!r}): e.g. {example}")
+        if not isinstance(self.energy_consistent, (bool, np.bool_)):
+            raise ContactParameterError(
+                f"energy_consistent must be True or False (got {self.energy_consistent!r})")
         if not isinstance(self.passivity_controller, (bool, np.bool_)):
             raise ContactParameterError(
                 f"passivity_controller must be True or False (got {self.passivity_controller!r})")
@@ -165,18 +183,27 @@ class ContactOutputs:
     """Outputs of one haptic step. Arrays are the model's buffers: copy them to keep them.
 
     tissue_contact_force sums to -tool_force exactly (action-reaction), except for the damping the
-    passivity controller adds on the tool side when it is on (a device-side element, not a contact).
+    passivity controller adds on the tool side when it is on (a device-side element, not a contact),
+    and while the device limit engages (`force_limited`): tool_force and node_forces are the force
+    the haptic port renders, limited to the device (device.py), while tip_force (the catheter's
+    input) and tissue_contact_force stay the physical contact force, as CHAI3D limits only what it
+    sends to the device.
     """
 
-    tool_force: np.ndarray             # (3,) total force on the tool, N
-    tip_force: np.ndarray              # (3,) force on the last tool point, N
+    tool_force: np.ndarray             # (3,) total force on the tool as the device renders it, N
+    tip_force: np.ndarray              # (3,) physical force on the last tool point (before the device limit), N
     tip_stiffness: np.ndarray          # (3,3) -d tip_force / d (last tool point), N/m (penalty_kernels.tip_stiffness)
     tissue_contact_force: np.ndarray   # (n_surface,3) nodal forces on the surface, N
-    node_forces: np.ndarray            # (n_tool,3) force on each tool point, N
+    node_forces: np.ndarray            # (n_tool,3) force on each tool point as rendered (sums to tool_force), N
     penetration_depth: float           # max over contacts, m
     contact_count: int                 # tool primitives (nodes, segments) in contact
     contact_energy: float              # penalty potential energy, J
     passivity_energy: float            # energy into the environment through the port, J (>= 0 passive)
+    force_limited: bool = False        # the device limit (max_force, max_force_rate) engaged at this step
+    force_limited_steps: int = 0       # steps whose rendered force was limited, since the start
+    contact_cycles: int = 0            # closed contact cycles (passivity.py)
+    active_cycles: int = 0             # closed contact cycles that created energy (passivity.py)
+    last_cycle_energy: float = 0.0     # energy into the environment over the last closed contact cycle, J (>= 0 passive)
 
 
 def _float_array(name, value, n, fix):
@@ -293,8 +320,14 @@ class ContactModel:
         self._contact_rate = np.zeros(n_prim)
         self._contact_s = np.zeros(n_prim)
         self._contact_point = np.zeros((n_prim, 3))
+        self._trust = np.zeros(self.n_tool)            # how deep behind the wall a node may be found (narrow phase)
+        self._contact_ahead = np.zeros(n_prim)        # depth change predicted over the hold (energy_consistent)
+        self._tool_older = None                       # tool positions two steps back (the hold's prediction)
+        self._tool_pred_vel = np.zeros((self.n_tool, 3))
+        self._older_dt = 0.0
+        self._ahead_gain = 0.0
         self._near_dist = np.zeros(self.n_tool)
-        self._blend_work = np.zeros((1, 8))
+        self._blend_work = np.zeros((1, narrow_phase.WORK_COLUMNS))
         self._fmag = np.zeros(n_prim)
         # output buffers
         self._node_force = np.zeros((self.n_tool, 3))
@@ -425,7 +458,7 @@ class ContactModel:
         self._ccd_buffers = (np.zeros((cap, 8, 3)), np.zeros(cap, np.int64), np.zeros(cap, np.int64))
         most = max(rendering_kernels.longest_row(self.local.node_ptr), rendering_kernels.longest_row(self.local.seg_ptr))
         if most > self._blend_work.shape[0]:
-            self._blend_work = np.zeros((most, 8))       # the narrow phase's contact-normal scratch
+            self._blend_work = np.zeros((most, narrow_phase.WORK_COLUMNS))   # the narrow phase's scratch
         self.local_refreshes += 1
 
     def _mark_entries(self, hit, toi, q_node, q_face, normals) -> None:
@@ -484,19 +517,26 @@ class ContactModel:
         max_depth, count, energy = self._response(float(dt))
         if self.compliance is not None:
             self._name_patch(tool1)
-        node_force = self._passivity(tool1, tool_vel, float(dt))
+        node_force = self._passivity(tool1, tool_vel, float(dt), float(t) + float(dt))
         self._warn_if_active(float(energy), t)
+        self._tool_older, self._older_dt = self._tool_prev, float(dt)
         self._tool_prev = tool1.copy()
+        renderer = self._renderer
+        limited = renderer.force_limited
         if self._outputs is None:
             tool_force, tip_force = node_force.sum(axis=0), node_force[-1].copy()
-        else:  # write_outputs_into
+            if limited:  # the device limited the port; the catheter's tip keeps the physical contact force
+                tip_force[...] = renderer.limiter.report[REQUESTED_TIP]
+        else:  # write_outputs_into (the tip's physical force likewise)
             self._publish(node_force)
             tool_force, tip_force = self._outputs[0], self._outputs[1]
         return ContactOutputs(
             tool_force=tool_force, tip_force=tip_force, tip_stiffness=self._tip_stiffness,
             tissue_contact_force=self._tissue_force, node_forces=self._node_force,
             penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
-            passivity_energy=self._renderer.energy)
+            passivity_energy=renderer.energy, force_limited=limited,
+            force_limited_steps=renderer.limiter.limited_steps, contact_cycles=renderer.cycles,
+            active_cycles=renderer.active_cycles, last_cycle_energy=renderer.last_cycle_energy)
 
     def _tool_inputs(self, t, dt, tool_positions, tool_velocities):
         """Validated (tool0, tool1, tool velocities); warns once about tunnelling (discrete)."""
@@ -513,9 +553,18 @@ class ContactModel:
         if tool_velocities is None:
             tool_vel = self._tool_vel
             difference_velocity(tool1, tool0, float(dt), tool_vel)
+            if self._tool_older is None:
+                self._tool_pred_vel[...] = tool_vel
+                self._ahead_gain = 1.0          # d (predicted depth change) / d (this sample's depth)
+            else:   # the mean velocity over the last two steps
+                span = float(dt) + self._older_dt
+                difference_velocity(tool1, self._tool_older, span, self._tool_pred_vel)
+                self._ahead_gain = float(dt) / span
         else:
             tool_vel = _float_array("tool_velocities", tool_velocities, self.n_tool,
                                     "give the tool point velocities in m/s, or None to difference positions")
+            self._tool_pred_vel[...] = tool_vel
+            self._ahead_gain = 0.0
         if self.params.detection == "discrete" and not self._tunnel_warned:
             # Discrete detection sees only where the tool is at each sample: a tool that moves
             # farther than the margin in one step can pass through a thin wall unseen (measured by
@@ -558,8 +607,18 @@ class ContactModel:
                 self._mark_entries(hit, toi, q_node[:count], q_face[:count], self._local_normals(pos1))
         c = self.compliance
         band = c.band if c is not None and c.active else 0.0
+        if self.params.energy_consistent:
+            # a primitive that this step's motion, continued, brings into contact within the next
+            # step gets its share of the held force already (penalty.py: the interval of first touch)
+            band = max(band, max_displacement(tool1, tool0))
+        # the candidates are complete within margin / 2 of the tool's sphere (the broad phase queries
+        # boxes of margin + radius, and again whenever the tool has moved margin / 2); a node found
+        # behind the wall may also have crossed it within this step's motion
+        trust = self._trust
+        max_displacement_rows(tool1, tool0, trust)
+        trust += self.radius + 0.5 * self.params.margin
         narrow_phase.proximity(pos1, local.velocities, local.triangles, local.node_ptr, local.node_faces,
-                               local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius, band,
+                               local.seg_ptr, local.seg_faces, tool1, tool_vel, self.radius, band, trust,
                                self._inside, self._entry_normal, self._contact_face, self._contact_w,
                                self._contact_n, self._contact_depth, self._contact_rate, self._contact_s,
                                self._contact_point, self._near_dist, self._blend_work)
@@ -570,11 +629,22 @@ class ContactModel:
         displacement)."""
         p = self.params
         c = self.compliance
+        ahead, gain = self._contact_ahead, 0.0
+        if p.energy_consistent:
+            # the depth change the tool's motion predicts over the step the force will be held
+            # (penalty.py), from its mean velocity over the last two steps: exact for a steady motion,
+            # and blind to a period-2 oscillation, which a one-step difference would feed back
+            narrow_phase.approach(self._contact_face, self._contact_w, self._contact_n, self._contact_s,
+                                  self._contact_depth, self.local.triangles, self.local.velocities,
+                                  self._tool_pred_vel, self.n_tool, dt, ahead)
+            gain = self._ahead_gain
+        else:
+            ahead.fill(0.0)
         if c is not None and c.active:
             rendering_kernels.compliance_response(
                 self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
                 self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, self.n_segments, c.slot, c.W,
-                c.g, c.g_new, c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt,
+                c.g, c.g_new, c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt, ahead, gain,
                 COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, c._act, c._Wa, c._D, c._J, c._work,
                 self._node_force, self._tissue_force, c.record[c.current], self._tip_stiffness, c.out)
             c.record_steps[c.current] += 1
@@ -594,7 +664,8 @@ class ContactModel:
         return penalty_kernels.rigid_response(
             self._contact_face, self._contact_w, self._contact_n, self._contact_s, self._contact_depth,
             self._contact_rate, self.local.triangles, self.local.vertices, self.n_tool, self.n_segments, self._law,
-            p.stiffness, p.damping, p.penalty_length, dt, self._fmag, self._node_force, self._tissue_force, record,
+            p.stiffness, p.damping, p.penalty_length, dt, ahead, gain, self._fmag, self._node_force, self._tissue_force,
+            record,
             self._tip_stiffness)
 
     def _name_patch(self, tool1) -> None:
@@ -605,12 +676,16 @@ class ContactModel:
             self._near_dist, self.params.margin + self.radius, c.max_nodes, c._key_class, c._key_dist,
             c._key_id, c.patch)
 
-    def _passivity(self, tool1, tool_vel, dt) -> np.ndarray:
+    def _passivity(self, tool1, tool_vel, dt, t_sample) -> np.ndarray:
+        """The haptic port (one kernel, passivity.port_step): observer, contact cycles, controller and
+        the device limit; node forces become the rendered ones in place."""
         p = self.params
         if self._renderer is None:
-            self._renderer = PassiveRenderer(dt, p.passivity_controller, p.passivity_max_damping)
+            limiter = ForceLimiter(DeviceSpec(float(p.max_force), float(p.max_force_rate)))
+            self._renderer = PassiveRenderer(dt, p.passivity_controller, p.passivity_max_damping, limiter,
+                                             float(p.passivity_cycle_tolerance))
         self._renderer.period = dt
-        self._renderer.render_in_place(tool1, tool_vel, self._node_force)
+        self._renderer.render_in_place(tool1, tool_vel, self._node_force, t_sample)
         return self._node_force
 
     def _warn_if_active(self, potential: float, t: float) -> None:
@@ -622,6 +697,10 @@ class ContactModel:
         penalty energy it ever held is active whatever the device (measured by the extremes study:
         0.375 J created against 0.09 J stored at 20 kN/m; 0.03 J against 0.06 J at a passive
         800 N/m with b_dev = 1 N s/m).
+
+        Each contact cycle is also judged on its own, relative to the energy it exchanged, in the
+        passivity kernel (passivity.py: contact_cycles, active_cycles, last_cycle_energy, its own log
+        line); this warning is for a run's balance, e.g. a contact that never ends.
         """
         self._peak_potential = max(self._peak_potential, potential)
         created = -self._renderer.energy
@@ -707,6 +786,9 @@ class ContactModel:
         tool_force, tip_force, patch_nodes = self._outputs
         patch = self.compliance.patch if self.compliance is not None else self._no_patch
         rendering_kernels.publish(node_force, tool_force, tip_force, patch, patch_nodes)
+        renderer = self._renderer
+        if renderer is not None and renderer.force_limited:   # the tip keeps the physical force (ContactOutputs)
+            tip_force[...] = renderer.limiter.report[REQUESTED_TIP]
 
     @property
     def patch_count(self) -> int:

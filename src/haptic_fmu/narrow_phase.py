@@ -7,32 +7,47 @@ tool primitive):
   from outside to inside during the step (within the face's swept box); the model runs the exact
   conservative CCD (`ccd.vertex_face`) on them and marks the crossing nodes inside, with the
   crossed face's normal (the contact side memory);
-- discrete: `proximity` finds, for every tool primitive (nodes, then segments), its nearest
-  candidate facet and the contact data the response needs: facet, barycentric weights of the
-  closest point q, outward normal n, penetration depth (> 0), the rate of the depth, the segment
-  parameter and q itself. It computes no force (that is the response's job, `penalty` or the
-  compliance local model in `rendering`).
+- discrete: `proximity` finds, for every tool primitive (nodes, then segments), its contact data
+  for the response: facet, barycentric weights of the closest point q, outward normal n,
+  penetration depth, the rate of the depth, the segment parameter and q itself. It computes no
+  force (that is the response's job, `penalty` or the compliance local model in `rendering`).
 
-Nodes are spheres of `radius`: a node outside picks the nearest candidate face (unsigned distance
-|p - q|) and is in contact if it is behind the face's plane (depth = radius - plane distance) or
-in front of it closer than radius (depth = radius - |p - q|); a node inside keeps the side it
-entered from: it only considers faces whose normal agrees with its entry normal (so a thin wall
-it went through cannot flip the force). Segments (centerline only) add a contact where their
-interior, in front of the face, comes within radius of it (capsule, depth = radius - distance
-of the axis to the face).
+The depth is a continuous function of the tool's configuration, so the force is too:
 
-The contact normal (the force's direction) is not the nearest face's alone: it is the sum of
-the normals of every candidate face the sphere (capsule) reaches, within radius + band of it,
-weighted by that reach radius + band - |p - q_f|, coplanar faces (the two triangles of a flat
-quad) once (`_node_normal`, `_segment_normal`); the depth stays the nearest face's. On a flat patch every such face has the same normal, so nothing
-changes; across an edge of the tessellated wall the direction turns continuously instead of
-jumping from one facet's normal to the next's. With the nearest face's normal alone, a sphere
-resting in a concave crease between two facets (the 14 degrees between neighbouring facets of
-the AAA sac) is pushed toward the other facet by each one, which then becomes the nearest: the
-force direction flips every haptic step, a relay that the one-step delays (the catheter's tip,
-the wall's yielding under the last step's force) turn into a 500 Hz period-2 oscillation that
-creates energy at the port (aaa_endovascular: -0.090 J over 60 s at 1000 N/m, now none). A point
-probe (radius 0) reaches no face beyond the band: its normal is the nearest face's, as before.
+- **Signed distance.** A point's depth is measured by its signed distance sd to the wall: the
+  distance to the nearest candidate face, negative behind the wall, the side judged by the
+  angle-weighted pseudo-normal of the nearest feature (the face, the edge or the vertex the
+  closest point lies on; Baerentzen and Aanaes 2005). That is correct on both sides of a closed
+  shell (the lumen side and the outer side of the aneurysm wall) and of an open surface; "behind
+  the nearest face's plane" is not: seen from the lumen, every face of the outer surface has the
+  lumen behind its plane (a catheter node 8 mm inside the lumen got 9 mm of depth and 45 N from
+  that rule). A point behind faces farther than `trust` (the reach within which the broad phase's
+  candidates are complete, plus its own motion this step) cannot tell which side it is on and is
+  not in contact, unless it remembers entering the wall.
+- **Nodes** are spheres of `radius`: depth = radius - sd, from zero when the sphere first touches,
+  continuing past the radius when the node goes behind the wall. A node inside (depth > 0) keeps
+  the side it entered from: it only considers faces whose normal agrees with its entry normal, so
+  a thin wall it went through cannot flip the force.
+- **Segments** (centerline only) are capsules. Their contact is what the segment's depth profile
+  D(s) = radius - sd(p(s)) adds to the linear interpolation of its ends' depths (only the ends'
+  positive depths count): max over s of D(s) - ((1 - s) max(D(0), 0) + s max(D(1), 0)). On a flat
+  wall the profile is linear and the segment adds nothing (its end spheres carry it); over a ridge
+  or a vertex between its ends it adds the extra overlap, growing from zero as the ridge rises and
+  vanishing at either end: a capsule can neither appear with a finite depth when its closest point
+  leaves an end nor drop out when its depth passes the radius. The profile is sampled at
+  CAPSULE_SAMPLES interior points and its maximum refined by golden section; with both ends out of
+  contact it is the segment's exact closest approach. The ends' depths are measured as the samples
+  are (the segment's candidates and remembered side), so the excess is zero at both ends.
+- **The contact normal** (the force's direction) is not the nearest face's alone: it is the
+  weighted sum of the normals of the candidate faces within max(radius + band, d + NORMAL_BLEND_LENGTH)
+  of the point (d: the nearest face's distance), each weighted by how far inside that reach it is,
+  coplanar faces (the two triangles of a flat quad) once, faces on the nearest face's side only.
+  On a flat patch every such face has the same normal; across an edge or around a vertex of the
+  tessellated wall the direction turns continuously instead of jumping from one facet's normal to
+  the next's. With the nearest face's normal alone a sphere resting in a concave crease between two
+  facets, or a probe just behind a vertex, is pushed toward the other facet by each one, which then
+  becomes the nearest: a relay every haptic step, which the one-step delays (the catheter's tip,
+  the wall's yielding under the last step's force) turn into a 500 Hz oscillation.
 
 Numba kernels: arrays in, preallocated arrays out, no validation (the model checks inputs).
 """
@@ -41,7 +56,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .geometry import closest_point_triangle, closest_segment_triangle, dist2_point_bary, face_normal
+from .geometry import closest_point_triangle, closest_segment_triangle, face_normal
 
 
 @njit(cache=True)
@@ -103,7 +118,7 @@ def ccd_candidates(pos0, pos1, tri, node_ptr, node_faces, tool0, tool1, radius, 
 
 
 @njit(cache=True)
-def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, tool_vel, radius, band,
+def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, tool_vel, radius, band, trust,
               inside, entry_normal, contact_face, contact_w, contact_n, contact_depth, contact_rate,
               contact_s, contact_point, near_dist, work):
     """Closest facet and contact data of every tool primitive (nodes then segments).
@@ -112,14 +127,19 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
     tri (nf,3) local vertex ids; node_ptr/node_faces, seg_ptr/seg_faces: CSR candidate faces per
     tool node / segment; tool, tool_vel (n_tool,3). inside (n_tool,) int8 and entry_normal
     (n_tool,3): the contact side memory (updated). Outputs per primitive: contact_face (local face,
-    -1 when no contact), contact_w (weights of q), contact_n (outward normal), contact_depth
-    (> 0), contact_rate (d depth/dt = -(v_tool - v_surface) . n), contact_s (segment parameter of
-    the contact, 0 for nodes), contact_point (q); near_dist (n_tool,): distance of each node's
-    sphere to its nearest candidate face (negative inside, inf without candidates).
-    band >= 0: primitives closer than band to their face are reported too, with depth in
+    -1 when no contact), contact_w (weights of q), contact_n (outward normal), contact_depth,
+    contact_rate (d depth/dt = -(v_tool - v_surface) . n), contact_s (segment parameter of the
+    contact, 0 for nodes), contact_point (q); near_dist (n_tool,): signed distance of each node's
+    sphere to the wall (sd - radius: negative when it overlaps, inf when nothing is known).
+    band >= 0: primitives closer than band to the wall are reported too, with depth in
     (-band, 0] (the compliance model's wall may come back by up to its current yielding, so its
     solve decides those; 0 for the rigid local models: only penetrations).
-    work (k, 8): scratch of the contact normal's blend, k >= the candidate faces of any primitive.
+    trust (n_tool,) > 0: how far behind the wall each node can be found without remembering entering
+    it: the reach within which the broad phase's candidates are complete, plus the node's motion
+    this step (it may have crossed the surface within the step); a node of no remembered side found
+    deeper is not in contact (its candidates cannot tell which side it is on). A segment takes the
+    larger of its ends'.
+    work (k, WORK_COLUMNS): scratch, k >= the candidate faces of any primitive.
     Returns the number of primitives reported.
     """
     n_tool = tool.shape[0]
@@ -136,54 +156,21 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
         px = tool[i, 0]
         py = tool[i, 1]
         pz = tool[i, 2]
-        best = np.inf
-        best_f = -1
-        bwa = 0.0
-        bwb = 0.0
-        bwc = 0.0
-        bnx = 0.0
-        bny = 0.0
-        bnz = 0.0
-        seen = 0
-        for j in range(node_ptr[i], node_ptr[i + 1]):
-            f = node_faces[j]
-            a = pos[tri[f, 0]]
-            bb = pos[tri[f, 1]]
-            c = pos[tri[f, 2]]
-            nx, ny, nz = face_normal(a, bb, c)
-            if inside[i] and (nx * entry_normal[i, 0] + ny * entry_normal[i, 1]
-                              + nz * entry_normal[i, 2]) <= 0.0:
-                continue  # the far side of the wall: not the side this node came from
-            wa, wb, wc = closest_point_triangle(px, py, pz, a, bb, c)
-            d2 = dist2_point_bary(px, py, pz, a, bb, c, wa, wb, wc)
-            work[seen, 0] = d2          # kept for the contact normal's blend
-            work[seen, 1] = nx
-            work[seen, 2] = ny
-            work[seen, 3] = nz
-            seen += 1
-            if d2 < best:
-                best = d2
-                best_f = f
-                bwa, bwb, bwc = wa, wb, wc
-                bnx, bny, bnz = nx, ny, nz
-        if best_f < 0:
+        seen, best_e = _candidates(px, py, pz, pos, tri, node_faces, node_ptr[i], node_ptr[i + 1],
+                                   inside[i], entry_normal[i, 0], entry_normal[i, 1], entry_normal[i, 2], work)
+        if best_e < 0:
             inside[i] = 0
             continue
-        a = pos[tri[best_f, 0]]
-        plane = (px - a[0]) * bnx + (py - a[1]) * bny + (pz - a[2]) * bnz
-        if plane >= 0.0:
-            # in front of the face: the sphere touches it where the true distance is below radius
-            dist = math.sqrt(best) - radius
-        else:
-            # behind the face: penetration measured along the normal (smooth across the facets)
-            dist = plane - radius
+        sd = _signed_distance(px, py, pz, pos, tri, work, seen, best_e)
+        if sd < 0.0 and -sd > trust[i] and not inside[i]:
+            inside[i] = 0
+            continue    # behind faces it cannot be sure of (the far side of the wall, seen from the lumen)
+        dist = sd - radius
         near_dist[i] = dist
         if dist >= band or (band == 0.0 and dist >= 0.0):
             inside[i] = 0
             continue
-        # the contact normal: the faces the sphere touches, each weighted by how far it is in
-        # (continuous across the edges of the tessellated wall; see the module docstring)
-        bnx, bny, bnz = _node_normal(work, seen, radius + band, bnx, bny, bnz)
+        bnx, bny, bnz = _blend_normal(work, seen, best_e, radius + band)
         if dist < 0.0:
             inside[i] = 1
             entry_normal[i, 0] = bnx
@@ -191,106 +178,371 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
             entry_normal[i, 2] = bnz
         else:
             inside[i] = 0
-        va = vel[tri[best_f, 0]]
-        vb = vel[tri[best_f, 1]]
-        vc = vel[tri[best_f, 2]]
-        # relative normal velocity of the tool with respect to the surface at the contact point
-        vn = ((tool_vel[i, 0] - (bwa * va[0] + bwb * vb[0] + bwc * vc[0])) * bnx
-              + (tool_vel[i, 1] - (bwa * va[1] + bwb * vb[1] + bwc * vc[1])) * bny
-              + (tool_vel[i, 2] - (bwa * va[2] + bwb * vb[2] + bwc * vc[2])) * bnz)
-        _store(i, best_f, bwa, bwb, bwc, bnx, bny, bnz, -dist, -vn, 0.0, pos, tri,
-               contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, contact_point)
+        f = int(work[best_e, FACE])
+        _contact(i, f, px, py, pz, tool_vel[i, 0], tool_vel[i, 1], tool_vel[i, 2], bnx, bny, bnz, -dist, 0.0,
+                 pos, vel, tri, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s,
+                 contact_point)
         count += 1
 
-    # ---- segment interiors (capsules), only where the whole axis is in front of the face
+    # ---- segment interiors (capsules): what the segment's sampled depth profile adds to the
+    # linear interpolation of its end spheres' depths (zero on a flat wall; continuous, from 0)
     n_seg = seg_ptr.shape[0] - 1
     for sgi in range(n_seg):
+        start = seg_ptr[sgi]
+        stop = seg_ptr[sgi + 1]
+        if start == stop:
+            continue
         p0 = tool[sgi]
         p1 = tool[sgi + 1]
-        best = radius * radius
-        best_f = -1
-        bs = 0.0
-        bwa = 0.0
-        bwb = 0.0
-        bwc = 0.0
-        bnx = 0.0
-        bny = 0.0
-        bnz = 0.0
-        for j in range(seg_ptr[sgi], seg_ptr[sgi + 1]):
+        behind = max(trust[sgi], trust[sgi + 1])
+        # the remembered side of the segment: that of its distal end when inside the wall, else that
+        # of the other end (a fixed preference: a choice by depth would flip as two depths cross)
+        side = 0
+        snx = 0.0
+        sny = 0.0
+        snz = 0.0
+        if inside[sgi] and inside[sgi + 1] and (entry_normal[sgi, 0] * entry_normal[sgi + 1, 0]
+                                                + entry_normal[sgi, 1] * entry_normal[sgi + 1, 1]
+                                                + entry_normal[sgi, 2] * entry_normal[sgi + 1, 2]) <= 0.0:
+            continue    # its ends entered the wall from opposite sides: they carry its contact
+        end = sgi + 1 if inside[sgi + 1] else (sgi if inside[sgi] else -1)
+        if end >= 0:
+            side = 1
+            snx = entry_normal[end, 0]
+            sny = entry_normal[end, 1]
+            snz = entry_normal[end, 2]
+        # the ends' depths measured as the samples are (the segment's candidates and side), so the
+        # excess is zero at both ends whatever side each end itself remembers
+        e0 = max(_excess(0.0, p0, p1, 0.0, 0.0, radius, behind, pos, tri, seg_faces, start, stop, side,
+                         snx, sny, snz, work), 0.0)
+        e1 = max(_excess(1.0, p0, p1, 0.0, 0.0, radius, behind, pos, tri, seg_faces, start, stop, side,
+                         snx, sny, snz, work), 0.0)
+        # no face within radius + band of the segment: no sample in reach
+        nearest2 = np.inf
+        nearest_s = 0.0
+        reach = radius + band
+        for j in range(start, stop):
             f = seg_faces[j]
             a = pos[tri[f, 0]]
             bb = pos[tri[f, 1]]
             c = pos[tri[f, 2]]
             nx, ny, nz = face_normal(a, bb, c)
-            s0 = (p0[0] - a[0]) * nx + (p0[1] - a[1]) * ny + (p0[2] - a[2]) * nz
-            s1 = (p1[0] - a[0]) * nx + (p1[1] - a[1]) * ny + (p1[2] - a[2]) * nz
-            if s0 <= 0.0 or s1 <= 0.0:
-                continue  # an end at or behind the plane: the node spheres handle it
-            near = min(s0, s1)
-            if near * near >= best:
-                continue  # the plane (so the face) is farther than radius or the best face so far
+            h0 = (p0[0] - a[0]) * nx + (p0[1] - a[1]) * ny + (p0[2] - a[2]) * nz
+            h1 = (p1[0] - a[0]) * nx + (p1[1] - a[1]) * ny + (p1[2] - a[2]) * nz
+            if h0 >= reach and h1 >= reach:
+                continue    # the whole segment is farther than reach in front of the face's plane
             s, wa, wb, wc, d2 = closest_segment_triangle(p0, p1, a, bb, c)
-            if s <= 1e-9 or s >= 1.0 - 1e-9:
-                continue  # closest at a node: the node sphere handles it
-            if d2 < best:
-                best = d2
-                best_f = f
-                bs = s
-                bwa, bwb, bwc = wa, wb, wc
-                bnx, bny, bnz = nx, ny, nz
-        if best_f < 0:
+            if d2 < nearest2:
+                nearest2 = d2
+                nearest_s = s
+        if nearest2 >= reach * reach:
             continue
-        dist = math.sqrt(best) - radius
-        if dist >= band or (band == 0.0 and dist >= 0.0):
+        if e0 == 0.0 and e1 == 0.0 and 0.0 < nearest_s < 1.0 and nearest2 > 0.0:
+            # ends out of contact: the profile's maximum is the segment's closest approach to the
+            # wall (exact), when that point is in front of the wall
+            excess = _excess(nearest_s, p0, p1, e0, e1, radius, behind, pos, tri, seg_faces, start, stop, side,
+                             snx, sny, snz, work)
+            if excess <= radius:      # sd >= 0: the closest approach is in front of the wall
+                _capsule(sgi, n_tool, nearest_s, excess, p0, p1, tool_vel, radius, band, pos, vel, tri,
+                         seg_faces, start, stop, side, snx, sny, snz, work, contact_face, contact_w, contact_n,
+                         contact_depth, contact_rate, contact_s, contact_point)
+                count += contact_face[n_tool + sgi] >= 0
+                continue
+        best_excess = -np.inf
+        best_k = 0
+        for k in range(1, CAPSULE_SAMPLES + 1):
+            excess = _excess(k / (CAPSULE_SAMPLES + 1.0), p0, p1, e0, e1, radius, behind, pos, tri, seg_faces,
+                             start, stop, side, snx, sny, snz, work)
+            if excess > best_excess:
+                best_excess = excess
+                best_k = k
+        if not (best_excess > -band - CAPSULE_REFINE_MARGIN * radius):
             continue
-        bnx, bny, bnz = _segment_normal(p0, p1, pos, tri, seg_faces, seg_ptr[sgi], seg_ptr[sgi + 1], radius + band,
-                                        work, bnx, bny, bnz)
-        va = vel[tri[best_f, 0]]
-        vb = vel[tri[best_f, 1]]
-        vc = vel[tri[best_f, 2]]
-        tvx = (1.0 - bs) * tool_vel[sgi, 0] + bs * tool_vel[sgi + 1, 0]
-        tvy = (1.0 - bs) * tool_vel[sgi, 1] + bs * tool_vel[sgi + 1, 1]
-        tvz = (1.0 - bs) * tool_vel[sgi, 2] + bs * tool_vel[sgi + 1, 2]
-        vn = ((tvx - (bwa * va[0] + bwb * vb[0] + bwc * vc[0])) * bnx
-              + (tvy - (bwa * va[1] + bwb * vb[1] + bwc * vc[1])) * bny
-              + (tvz - (bwa * va[2] + bwb * vb[2] + bwc * vc[2])) * bnz)
-        _store(n_tool + sgi, best_f, bwa, bwb, bwc, bnx, bny, bnz, -dist, -vn, bs, pos, tri,
-               contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, contact_point)
-        count += 1
+        # the profile's maximum near the best sample (golden section on its two neighbours' span;
+        # the ends themselves add nothing: their excess is <= 0 by construction)
+        lo = (best_k - 1.0) / (CAPSULE_SAMPLES + 1.0)
+        hi = (best_k + 1.0) / (CAPSULE_SAMPLES + 1.0)
+        x1 = hi - GOLDEN * (hi - lo)
+        x2 = lo + GOLDEN * (hi - lo)
+        f1 = _excess(x1, p0, p1, e0, e1, radius, behind, pos, tri, seg_faces, start, stop, side, snx, sny, snz, work)
+        f2 = _excess(x2, p0, p1, e0, e1, radius, behind, pos, tri, seg_faces, start, stop, side, snx, sny, snz, work)
+        for _ in range(CAPSULE_REFINE_STEPS):
+            if f1 >= f2:
+                hi = x2
+                x2 = x1
+                f2 = f1
+                x1 = hi - GOLDEN * (hi - lo)
+                f1 = _excess(x1, p0, p1, e0, e1, radius, behind, pos, tri, seg_faces, start, stop, side,
+                             snx, sny, snz, work)
+            else:
+                lo = x1
+                x1 = x2
+                f1 = f2
+                x2 = lo + GOLDEN * (hi - lo)
+                f2 = _excess(x2, p0, p1, e0, e1, radius, behind, pos, tri, seg_faces, start, stop, side,
+                             snx, sny, snz, work)
+        best_s = best_k / (CAPSULE_SAMPLES + 1.0)
+        if f1 > best_excess:
+            best_excess = f1
+            best_s = x1
+        if f2 > best_excess:
+            best_excess = f2
+            best_s = x2
+        _capsule(sgi, n_tool, best_s, best_excess, p0, p1, tool_vel, radius, band, pos, vel, tri,
+                 seg_faces, start, stop, side, snx, sny, snz, work, contact_face, contact_w, contact_n,
+                 contact_depth, contact_rate, contact_s, contact_point)
+        count += contact_face[n_tool + sgi] >= 0
     return count
 
+
+@njit(cache=True)
+def _capsule(sgi, n_tool, s, excess, p0, p1, tool_vel, radius, band, pos, vel, tri, faces, start, stop, side,
+             snx, sny, snz, work, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s,
+             contact_point):
+    """Store segment sgi's contact at parameter s with depth `excess` (over its ends' depths), if it
+    is one."""
+    if not (excess > -band and (band > 0.0 or excess > 0.0)):
+        return
+    cx = p0[0] + s * (p1[0] - p0[0])
+    cy = p0[1] + s * (p1[1] - p0[1])
+    cz = p0[2] + s * (p1[2] - p0[2])
+    seen, best_e = _candidates(cx, cy, cz, pos, tri, faces, start, stop, side, snx, sny, snz, work)
+    bnx, bny, bnz = _blend_normal(work, seen, best_e, radius + band)
+    _contact(n_tool + sgi, int(work[best_e, FACE]), cx, cy, cz,
+             (1.0 - s) * tool_vel[sgi, 0] + s * tool_vel[sgi + 1, 0],
+             (1.0 - s) * tool_vel[sgi, 1] + s * tool_vel[sgi + 1, 1],
+             (1.0 - s) * tool_vel[sgi, 2] + s * tool_vel[sgi + 1, 2],
+             bnx, bny, bnz, excess, s, pos, vel, tri, contact_face, contact_w, contact_n, contact_depth,
+             contact_rate, contact_s, contact_point)
+    # the excess changes as the point's depth less the ends' (those in contact): the rate of what
+    # this contact measures (on a flat wall the segment's sinking is its ends', not its own)
+    _less_ends(n_tool + sgi, sgi, s, contact_face, contact_depth, contact_rate)
+
+
+@njit(cache=True)
+def _less_ends(k, sgi, s, contact_face, contact_depth, rate):
+    """rate[k] (segment sgi's contact at s) minus the ends' rates, weighted as the excess weights
+    their depths, for the ends in contact."""
+    if contact_face[sgi] >= 0 and contact_depth[sgi] > 0.0:
+        rate[k] -= (1.0 - s) * rate[sgi]
+    if contact_face[sgi + 1] >= 0 and contact_depth[sgi + 1] > 0.0:
+        rate[k] -= s * rate[sgi + 1]
+
+
+@njit(cache=True)
+def approach(contact_face, contact_w, contact_n, contact_s, contact_depth, tri, vel, tool_vel, n_tool, hold, ahead):
+    """ahead (n_prim,): the depth change each contact's tool motion predicts over the next hold
+    interval, -(v_tool - v_surface) . n hold, with the tool's velocity `tool_vel` (the model's
+    prediction of it); a segment's less its ends', as its rate (0 without a contact)."""
+    for i in range(contact_face.shape[0]):
+        ahead[i] = 0.0
+        f = contact_face[i]
+        if f < 0:
+            continue
+        if i < n_tool:
+            tvx = tool_vel[i, 0]
+            tvy = tool_vel[i, 1]
+            tvz = tool_vel[i, 2]
+        else:
+            s = contact_s[i]
+            j = i - n_tool
+            tvx = (1.0 - s) * tool_vel[j, 0] + s * tool_vel[j + 1, 0]
+            tvy = (1.0 - s) * tool_vel[j, 1] + s * tool_vel[j + 1, 1]
+            tvz = (1.0 - s) * tool_vel[j, 2] + s * tool_vel[j + 1, 2]
+        vn = 0.0
+        for d in range(3):
+            surface = (contact_w[i, 0] * vel[tri[f, 0], d] + contact_w[i, 1] * vel[tri[f, 1], d]
+                       + contact_w[i, 2] * vel[tri[f, 2], d])
+            vn += ((tvx if d == 0 else (tvy if d == 1 else tvz)) - surface) * contact_n[i, d]
+        ahead[i] = -vn * hold
+    for i in range(n_tool, contact_face.shape[0]):
+        if contact_face[i] >= 0:
+            _less_ends(i, i - n_tool, contact_s[i], contact_face, contact_depth, ahead)
+
+
+@njit(cache=True)
+def _excess(s, p0, p1, e0, e1, radius, trust, pos, tri, faces, start, stop, side, snx, sny, snz, work):
+    """How much deeper the sphere at parameter s of segment [p0, p1] reaches into the wall than the
+    linear interpolation of its ends' depths e0, e1 (>= 0: only the ends' contacts count); -inf when
+    no candidate face is near enough to know."""
+    cx = p0[0] + s * (p1[0] - p0[0])
+    cy = p0[1] + s * (p1[1] - p0[1])
+    cz = p0[2] + s * (p1[2] - p0[2])
+    seen, best_e = _candidates(cx, cy, cz, pos, tri, faces, start, stop, side, snx, sny, snz, work)
+    if best_e < 0:
+        return -np.inf
+    sd = _signed_distance(cx, cy, cz, pos, tri, work, seen, best_e)
+    if sd < 0.0 and -sd > trust and side == 0:
+        return -np.inf
+    return (radius - sd) - ((1.0 - s) * e0 + s * e1)
+
+
+#: Golden-section steps that refine a segment's deepest point between samples: the bracket shrinks
+#: to 0.618^44 = 6e-10 of two sample spacings, so the contact's parameter (which splits the force
+#: between the two ends) is right to 1e-10, and its depth to round-off (its error is quadratic).
+CAPSULE_REFINE_STEPS = 44
+GOLDEN = 0.6180339887498949
+#: A segment whose best sample is this fraction of the radius short of a contact is still refined
+#: (its maximum between samples can reach further than the samples).
+CAPSULE_REFINE_MARGIN = 0.25
+
+#: Interior samples of a segment's depth profile (s = k / (CAPSULE_SAMPLES + 1)): 0.625 mm apart on
+#: the catheter's 5 mm links, below its 1 mm radius, so a facet vertex cannot hide between two.
+CAPSULE_SAMPLES = 7
+
+#: Smoothing length (m) of the contact normal: faces within this of the nearest one share the
+#: normal, so a point deeper than its radius (a probe, a deep node) does not relay between the
+#: faces around a vertex or an edge.
+NORMAL_BLEND_LENGTH = 1e-4
 
 #: Faces whose normals agree to this (1 - cos) are one plane in the contact normal's blend.
 COPLANAR = 1e-9
 
+#: Columns of the scratch `work` per candidate face: squared distance, normal (3), blend (4),
+#: closest point (3), face id.
+D2, NX, NY, NZ, BW, BX, BY, BZ, QX, QY, QZ, FACE = range(12)
+WORK_COLUMNS = 12
+
+
+@njit(cache=True)
+def _candidates(px, py, pz, pos, tri, faces, start, stop, side, enx, eny, enz, work):
+    """Distance, normal and closest point of p to each candidate face faces[start:stop] into
+    work[:seen] (faces facing away from the remembered side (enx, eny, enz) left out when side);
+    returns (seen, row of the nearest, -1 when none)."""
+    seen = 0
+    best = np.inf
+    best_e = -1
+    for j in range(start, stop):
+        f = faces[j]
+        a = pos[tri[f, 0]]
+        bb = pos[tri[f, 1]]
+        c = pos[tri[f, 2]]
+        nx, ny, nz = face_normal(a, bb, c)
+        if side and nx * enx + ny * eny + nz * enz <= 0.0:
+            continue  # the far side of the wall: not the side this point came from
+        wa, wb, wc = closest_point_triangle(px, py, pz, a, bb, c)
+        qx = wa * a[0] + wb * bb[0] + wc * c[0]
+        qy = wa * a[1] + wb * bb[1] + wc * c[1]
+        qz = wa * a[2] + wb * bb[2] + wc * c[2]
+        d2 = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+        work[seen, D2] = d2
+        work[seen, NX] = nx
+        work[seen, NY] = ny
+        work[seen, NZ] = nz
+        work[seen, QX] = qx
+        work[seen, QY] = qy
+        work[seen, QZ] = qz
+        work[seen, FACE] = f
+        if d2 < best:
+            best = d2
+            best_e = seen
+        seen += 1
+    return seen, best_e
+
+
+@njit(cache=True)
+def _signed_distance(px, py, pz, pos, tri, work, seen, best_e):
+    """Signed distance of p to the wall: the distance to the nearest candidate face, negative when p
+    is behind the wall, judged by the angle-weighted pseudo-normal of the nearest feature (face,
+    edge or vertex; Baerentzen and Aanaes 2005) from the faces sharing the closest point: correct
+    on either side of a closed or open shell, where "behind the nearest face's plane" is not
+    (seen from the lumen, the outer surface's faces all have the lumen behind their plane)."""
+    qx = work[best_e, QX]
+    qy = work[best_e, QY]
+    qz = work[best_e, QZ]
+    d = math.sqrt(work[best_e, D2])
+    tol = 1e-12 + 1e-9 * (d + abs(qx) + abs(qy) + abs(qz))
+    tol2 = tol * tol
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    for e in range(seen):
+        if (work[e, QX] - qx) ** 2 + (work[e, QY] - qy) ** 2 + (work[e, QZ] - qz) ** 2 > tol2:
+            continue
+        f = int(work[e, FACE])
+        weight = 1.0        # q inside the face or on an edge: the faces count alike
+        for corner in range(3):
+            v = pos[tri[f, corner]]
+            if (v[0] - qx) ** 2 + (v[1] - qy) ** 2 + (v[2] - qz) ** 2 <= tol2:
+                u = pos[tri[f, (corner + 1) % 3]]
+                w = pos[tri[f, (corner + 2) % 3]]
+                weight = _angle(v, u, w)    # q at a vertex: weighted by the face's angle there
+                break
+        sx += weight * work[e, NX]
+        sy += weight * work[e, NY]
+        sz += weight * work[e, NZ]
+    if (px - qx) * sx + (py - qy) * sy + (pz - qz) * sz < 0.0:
+        return -d
+    return d
+
+
+@njit(cache=True)
+def _angle(v, u, w):
+    """Angle at v of the triangle (v, u, w), radians."""
+    ax = u[0] - v[0]
+    ay = u[1] - v[1]
+    az = u[2] - v[2]
+    bx = w[0] - v[0]
+    by = w[1] - v[1]
+    bz = w[2] - v[2]
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+
+
+@njit(cache=True)
+def _blend_normal(work, seen, best_e, reach):
+    """Contact normal of a point from its candidate faces (work[:seen]): the normals of the faces
+    within max(reach, d + NORMAL_BLEND_LENGTH) of it (d: the nearest face's distance; reach: the
+    radius plus the band), each weighted by how far inside that distance it is, coplanar faces (the
+    two triangles of a flat quad) once, faces facing the nearest face's side only. Continuous in
+    the point, so the force turns smoothly across the edges and vertices of the tessellated wall
+    (see the module docstring)."""
+    bnx = work[best_e, NX]
+    bny = work[best_e, NY]
+    bnz = work[best_e, NZ]
+    limit = max(reach, math.sqrt(work[best_e, D2]) + NORMAL_BLEND_LENGTH)
+    count = 0
+    for e in range(seen):
+        nx = work[e, NX]
+        ny = work[e, NY]
+        nz = work[e, NZ]
+        if nx * bnx + ny * bny + nz * bnz <= 0.0:
+            continue
+        w = limit - math.sqrt(work[e, D2])
+        if w > 0.0:
+            count = _reach(work, count, w, nx, ny, nz)
+    return _blend(work, count, bnx, bny, bnz)
+
 
 @njit(cache=True)
 def _reach(work, count, w, nx, ny, nz):
-    """Add a face within reach (weight w > 0, normal n) to the blend in work[:, 4:8]: a face
-    coplanar with one already there (the two triangles of a flat quad) counts once, with the larger
-    weight. Returns the new count."""
+    """Add a face within reach (weight w > 0, normal n) to the blend in work[:, BW:BZ+1] (rows
+    already read): a face coplanar with one already there counts once, with the larger weight.
+    Returns the new count."""
     for e in range(count):
-        if nx * work[e, 5] + ny * work[e, 6] + nz * work[e, 7] > 1.0 - COPLANAR:
-            if w > work[e, 4]:
-                work[e, 4] = w
+        if nx * work[e, BX] + ny * work[e, BY] + nz * work[e, BZ] > 1.0 - COPLANAR:
+            if w > work[e, BW]:
+                work[e, BW] = w
             return count
-    work[count, 4] = w
-    work[count, 5] = nx
-    work[count, 6] = ny
-    work[count, 7] = nz
+    work[count, BW] = w
+    work[count, BX] = nx
+    work[count, BY] = ny
+    work[count, BZ] = nz
     return count + 1
 
 
 @njit(cache=True)
 def _blend(work, count, bnx, bny, bnz):
-    """The unit sum of the weighted normals in work[:count, 4:8]; (bnx, bny, bnz) when empty."""
+    """The unit sum of the weighted normals in work[:count, BW:BZ+1]; (bnx, bny, bnz) when empty."""
     sx = 0.0
     sy = 0.0
     sz = 0.0
     for e in range(count):
-        sx += work[e, 4] * work[e, 5]
-        sy += work[e, 4] * work[e, 6]
-        sz += work[e, 4] * work[e, 7]
+        sx += work[e, BW] * work[e, BX]
+        sy += work[e, BW] * work[e, BY]
+        sz += work[e, BW] * work[e, BZ]
     norm = math.sqrt(sx * sx + sy * sy + sz * sz)
     if norm <= 0.0:
         return bnx, bny, bnz
@@ -298,55 +550,20 @@ def _blend(work, count, bnx, bny, bnz):
 
 
 @njit(cache=True)
-def _node_normal(work, seen, reach, bnx, bny, bnz):
-    """Contact normal of a node sphere from its `seen` candidate faces (work[:, 0:4]: squared
-    distance to the face, normal; the side filter already applied): the normals of the faces
-    closer than reach = radius + band (the sphere's overlap, plus the band), each weighted by
-    reach - |p - q_f|, coplanar faces once, faces on the nearest face's side only (bnx, bny, bnz:
-    that face's normal, returned unchanged when no face is within reach: a point probe, or a node
-    deeper than radius + band behind the wall)."""
-    count = 0
-    for e in range(seen):
-        nx = work[e, 1]
-        ny = work[e, 2]
-        nz = work[e, 3]
-        if nx * bnx + ny * bny + nz * bnz <= 0.0:
-            continue
-        w = reach - math.sqrt(work[e, 0])
-        if w > 0.0:
-            count = _reach(work, count, w, nx, ny, nz)
-    return _blend(work, count, bnx, bny, bnz)
-
-
-@njit(cache=True)
-def _segment_normal(p0, p1, pos, tri, faces, start, stop, reach, work, bnx, bny, bnz):
-    """`_node_normal` for a segment capsule: the faces whose closest point is in the segment's
-    interior and closer than reach = radius + band, weighted by reach - distance."""
-    count = 0
-    for j in range(start, stop):
-        f = faces[j]
-        a = pos[tri[f, 0]]
-        bb = pos[tri[f, 1]]
-        c = pos[tri[f, 2]]
-        nx, ny, nz = face_normal(a, bb, c)
-        if nx * bnx + ny * bny + nz * bnz <= 0.0:
-            continue
-        s0 = (p0[0] - a[0]) * nx + (p0[1] - a[1]) * ny + (p0[2] - a[2]) * nz
-        s1 = (p1[0] - a[0]) * nx + (p1[1] - a[1]) * ny + (p1[2] - a[2]) * nz
-        if s0 <= 0.0 or s1 <= 0.0:
-            continue
-        s, wa, wb, wc, d2 = closest_segment_triangle(p0, p1, a, bb, c)
-        if s <= 1e-9 or s >= 1.0 - 1e-9:
-            continue
-        w = reach - math.sqrt(d2)
-        if w > 0.0:
-            count = _reach(work, count, w, nx, ny, nz)
-    return _blend(work, count, bnx, bny, bnz)
-
-
-@njit(cache=True)
-def _store(k, f, wa, wb, wc, nx, ny, nz, depth, rate, s, pos, tri,
-           contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, contact_point):
+def _contact(k, f, px, py, pz, tvx, tvy, tvz, nx, ny, nz, depth, s, pos, vel, tri,
+             contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, contact_point):
+    """Store primitive k's contact with face f at the point of f closest to p (tool velocity tv at p):
+    the rate is the relative normal velocity of the tool with respect to the surface there."""
+    a = pos[tri[f, 0]]
+    bb = pos[tri[f, 1]]
+    c = pos[tri[f, 2]]
+    wa, wb, wc = closest_point_triangle(px, py, pz, a, bb, c)
+    va = vel[tri[f, 0]]
+    vb = vel[tri[f, 1]]
+    vc = vel[tri[f, 2]]
+    vn = ((tvx - (wa * va[0] + wb * vb[0] + wc * vc[0])) * nx
+          + (tvy - (wa * va[1] + wb * vb[1] + wc * vc[1])) * ny
+          + (tvz - (wa * va[2] + wb * vb[2] + wc * vc[2])) * nz)
     contact_face[k] = f
     contact_w[k, 0] = wa
     contact_w[k, 1] = wb
@@ -355,7 +572,7 @@ def _store(k, f, wa, wb, wc, nx, ny, nz, depth, rate, s, pos, tri,
     contact_n[k, 1] = ny
     contact_n[k, 2] = nz
     contact_depth[k] = depth
-    contact_rate[k] = rate
+    contact_rate[k] = -vn
     contact_s[k] = s
     for d in range(3):
-        contact_point[k, d] = (wa * pos[tri[f, 0], d] + wb * pos[tri[f, 1], d] + wc * pos[tri[f, 2], d])
+        contact_point[k, d] = wa * a[d] + wb * bb[d] + wc * c[d]

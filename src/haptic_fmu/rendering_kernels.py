@@ -14,7 +14,10 @@ moves by u = W (g - g_applied), so the depth of contact i changes by a_i . du an
 
 (depth_i measured against the wall predicted with the previous step's patch force g_prev). The
 wall's yielding this step also moves the surface: rate_i(f) = rate_i + (delta_i(f) - depth_i)/dt.
-`compliance_forces` solves f_i = phi(delta_i(f), rate_i(f)) (the penalty law phi) by semi-smooth
+The law's elastic part is held at its mean over the depth change the tool's own motion predicts
+for the hold interval, ahead_i (`narrow_phase.approach`, `penalty_kernels.elastic_mean`; all 0:
+the sampled law); the yielding is not extrapolated (it is this step's answer, not a motion that goes on).
+`compliance_forces` solves f_i = phi(delta_i(f), rate_i(f), ahead_i) (the penalty law phi) by semi-smooth
 Newton: the Jacobian is I + diag(phi_delta + phi_rate / dt) D on contacts that stay in contact
 (delta > 0), the identity elsewhere (f_i = 0). For the linear law on a fixed contact set one
 iteration is exact; a few handle contacts that separate and the non-linear laws. Where the law
@@ -130,7 +133,7 @@ def _solved_contact(ia, i, m, delta0, D, f, contact_depth, contact_rate, dt):
 
 
 @njit(cache=True)
-def _scalar_contact(e, d, r_base, law, k, b, d0, dt):
+def _scalar_contact(e, d, r_base, ahead, law, k, b, d0, dt):
     """Force of one contact whose depth is delta = e - d f (the others held), rate r_base + delta/dt.
 
     The law may jump at delta = 0 (linear and quadratic laws with damping: f(0+) = b rate): the
@@ -140,25 +143,25 @@ def _scalar_contact(e, d, r_base, law, k, b, d0, dt):
     if e <= 0.0:
         return 0.0
     if d <= 0.0:
-        return penalty_magnitude(e, r_base + e / dt, law, k, b, d0)
+        return penalty_magnitude(e, r_base + e / dt, law, k, b, d0, ahead)
     tiny = 1e-300
-    if penalty_magnitude(tiny, r_base, law, k, b, d0) >= e / d:
+    if penalty_magnitude(tiny, r_base, law, k, b, d0, ahead) >= e / d:
         return e / d
     lo = 0.0
     hi = e
     for _ in range(200):
-        if penalty_magnitude(hi, r_base + hi / dt, law, k, b, d0) - (e - hi) / d >= 0.0:
+        if penalty_magnitude(hi, r_base + hi / dt, law, k, b, d0, ahead) - (e - hi) / d >= 0.0:
             break
         lo = hi
         hi *= 2.0
     x = hi
     for _ in range(100):
-        h = penalty_magnitude(x, r_base + x / dt, law, k, b, d0) - (e - x) / d
+        h = penalty_magnitude(x, r_base + x / dt, law, k, b, d0, ahead) - (e - x) / d
         if h >= 0.0:
             hi = x
         else:
             lo = x
-        s_delta, s_rate = penalty_slopes(x, r_base + x / dt, law, k, b, d0)
+        s_delta, s_rate, _ = penalty_slopes(x, r_base + x / dt, law, k, b, d0, ahead)
         slope = s_delta + s_rate / dt + 1.0 / d
         x_new = x - h / slope
         if not (lo < x_new < hi):
@@ -171,7 +174,8 @@ def _scalar_contact(e, d, r_base, law, k, b, d0, dt):
 
 
 @njit(cache=True)
-def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0, dt, tol, max_sweeps, f):
+def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, contact_ahead, law, k, b, d0, dt, tol, max_sweeps,
+                  f):
     """Projected Gauss-Seidel over the contacts, each solved exactly with the others held (converges
     for the positive semi-definite D). Returns the sweeps used, -1 when max_sweeps did not reach tol."""
     for sweep in range(max_sweeps):
@@ -183,7 +187,8 @@ def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0,
             for ib in range(m):
                 if ib != ia:
                     e -= D[ia, ib] * f[ib]
-            new = _scalar_contact(e, D[ia, ia], contact_rate[i] - contact_depth[i] / dt, law, k, b, d0, dt)
+            new = _scalar_contact(e, D[ia, ia], contact_rate[i] - contact_depth[i] / dt, contact_ahead[i], law,
+                                  k, b, d0, dt)
             if abs(new - f[ia]) > change:
                 change = abs(new - f[ia])
             f[ia] = new
@@ -196,11 +201,12 @@ def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0,
 
 @njit(cache=True)
 def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g_prev,
-                      law, k, b, d0, dt, max_iter, tol, fmag, g_out, act, Wa, D, J, rhs, delta0, f):
+                      contact_ahead, law, k, b, d0, dt, max_iter, tol, fmag, g_out, act, Wa, D, J, rhs, delta0, f):
     """Contact forces against the yielding wall (see the module docstring).
 
     Inputs: the narrow phase's contact data (contact_face, weights, normals, depth, rate; depth and
-    rate against the wall predicted with g_prev), tri (local faces), slot (local vertex -> patch
+    rate against the wall predicted with g_prev), contact_ahead (the depth change the tool's motion
+    predicts over the hold, `narrow_phase.approach`), tri (local faces), slot (local vertex -> patch
     slot or -1), W (3p,3p), g_prev (3p). Outputs: fmag (per primitive: force magnitude along n),
     contact_depth / contact_rate updated to the solved wall, contact_face set to -1 for contacts
     the yielding wall has left, g_out (3p) the patch force of the solution. Work arrays: act
@@ -258,10 +264,11 @@ def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact
         fmax = 0.0
         for ia in range(m):
             delta, rate = _solved_contact(ia, act[ia], m, delta0, D, f, contact_depth, contact_rate, dt)
-            phi = penalty_magnitude(delta, rate, law, k, b, d0)
+            ahead = contact_ahead[act[ia]]       # the tool's motion over the hold, not the yielding
+            phi = penalty_magnitude(delta, rate, law, k, b, d0, ahead)
             slope = 0.0
             if delta > 0.0 and (law != LAW_HUNT_CROSSLEY or phi > 0.0):  # Hunt-Crossley clamps at 0
-                s_delta, s_rate = penalty_slopes(delta, rate, law, k, b, d0)
+                s_delta, s_rate, _ = penalty_slopes(delta, rate, law, k, b, d0, ahead)
                 slope = s_delta + s_rate / dt
             rhs[ia] = phi - f[ia]
             for ib in range(m):
@@ -283,7 +290,7 @@ def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact
         # contact by contact with the set-valued law instead
         for ia in range(m):
             f[ia] = 0.0
-        sweeps = _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, law, k, b, d0, dt, tol,
+        sweeps = _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, contact_ahead, law, k, b, d0, dt, tol,
                                GAUSS_SEIDEL_SWEEPS, f)
         iterations = -1 if sweeps < 0 else max_iter + sweeps
     # final state: depths and rates of the solved wall, forces, patch load
@@ -402,7 +409,8 @@ def name_patch(pos, vertices, tri, contact_face, contact_point, tool, near_dist,
 @njit(cache=True)
 def compliance_response(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
                         local_to_global, n_tool, n_segments, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt,
-                        max_iter, tol, fmag, work_i, Wa, D, J, work_f, node_force, tissue_force, force_sum, tip_k, out):
+                        contact_ahead, ahead_gain, max_iter, tol, fmag, work_i, Wa, D, J, work_f, node_force,
+                        tissue_force, force_sum, tip_k, out):
     """The compliance model's response in one call (the 1 kHz path): `compliance_forces`, then
     `penalty_kernels.distribute`, the tip's stiffness against the yielding wall into tip_k (3, 3)
     (`penalty_kernels.tip_stiffness`), then the patch's new load g and displacement
@@ -411,12 +419,12 @@ def compliance_response(contact_face, contact_w, contact_n, contact_depth, conta
     work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
     (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
     iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
-                                   law, k, b, d0, dt, max_iter, tol, fmag, g_new, work_i, Wa, D, J, work_f[0],
-                                   work_f[1], work_f[2])
+                                   contact_ahead, law, k, b, d0, dt, max_iter, tol, fmag, g_new, work_i, Wa, D, J,
+                                   work_f[0], work_f[1], work_f[2])
     max_depth, count, energy = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri,
                                           local_to_global, n_tool, law, k, d0, node_force, tissue_force, force_sum)
     tip_stiffness(fmag, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri, slot, W,
-                  n_tool, n_segments, law, k, b, d0, dt, tip_k)
+                  n_tool, n_segments, law, k, b, d0, dt, contact_ahead, ahead_gain, tip_k)
     # u = W (g - g_applied), updated by the columns whose load changed (at most 9 per contact:
     # the contact faces' vertices; none while nothing touches the patch)
     n3 = g.shape[0]
