@@ -5,10 +5,10 @@ Organised by role, as SOFA's collision and haptics pipeline:
 | stage | module | what |
 |---|---|---|
 | broad phase | `aabb` (+ `aabb_kernels`) | AABB tree of the surface triangles (built on the first frame, refitted at every frame), queried with boxes around the tool's sweep: the local model's candidate pairs |
-| narrow phase | `narrow_phase`, `ccd` (+ `ccd_kernels`) | CCD of the tool nodes crossing a face plane (frame-level against the tissue's motion, step-level against the local model's), then the closest facet and depth of every tool primitive |
-| response | `penalty` (+ `penalty_kernels`) | penalty laws, forces on the tool nodes and the tissue nodes |
+| narrow phase | `narrow_phase`, `ccd` (+ `ccd_kernels`) | CCD of the tool nodes crossing a face plane (frame-level against the tissue's motion, step-level against the local model's), then the depth of every tool primitive as a signed distance to the wall (continuous in the tool's configuration) and the depth change its motion predicts for the hold |
+| response | `penalty` (+ `penalty_kernels`) | penalty laws held energy-consistently over the step, forces on the tool nodes and the tissue nodes |
 | rendering | `rendering` (+ `rendering_kernels`) | local models between frames: `compliance` (the wall yields through W from Tissue; the contact is solved against it), `hold`, `extrapolate` |
-| passivity | `passivity` | passivity observer and controller of the haptic port |
+| haptic port | `passivity`, `device` | passivity observer (per contact cycle too) and controller, and the device's force and rate limits |
 
 Data flow
 - `set_tissue_frame(t, positions, velocities, compliance=None, compliance_nodes=None,
