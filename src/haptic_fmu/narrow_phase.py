@@ -377,10 +377,11 @@ def _excess(s, p0, p1, e0, e1, radius, trust, pos, tri, faces, start, stop, side
     return (radius - sd) - ((1.0 - s) * e0 + s * e1)
 
 
-#: Golden-section steps that refine a segment's deepest point between samples: the bracket shrinks
-#: to 0.618^44 = 6e-10 of two sample spacings, so the contact's parameter (which splits the force
-#: between the two ends) is right to 1e-10, and its depth to round-off (its error is quadratic).
-CAPSULE_REFINE_STEPS = 44
+#: Golden-section steps that refine a segment's deepest point between samples (an end in contact;
+#: with both ends free the closest approach is exact): the bracket shrinks to 0.618^28 = 1.4e-6 of
+#: two sample spacings, so the contact's parameter (which splits the force between the two ends) is
+#: right to 4e-7, and its depth to round-off (its error is quadratic in the parameter's).
+CAPSULE_REFINE_STEPS = 28
 GOLDEN = 0.6180339887498949
 #: A segment whose best sample is this fraction of the radius short of a contact is still refined
 #: (its maximum between samples can reach further than the samples).
