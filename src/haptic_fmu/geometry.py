@@ -33,6 +33,22 @@ def face_normal(a, b, c):
 
 
 @njit(cache=True)
+def vertex_angle(v, u, w):
+    """Angle at v of the triangle (v, u, w), radians (atan2 of the cross and dot products: accurate
+    for small and obtuse angles alike)."""
+    ax = u[0] - v[0]
+    ay = u[1] - v[1]
+    az = u[2] - v[2]
+    bx = w[0] - v[0]
+    by = w[1] - v[1]
+    bz = w[2] - v[2]
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+
+
+@njit(cache=True)
 def closest_point_triangle(px, py, pz, a, b, c):
     """Barycentric weights (wa, wb, wc) of the point of triangle (a, b, c) closest to p.
 

@@ -56,7 +56,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .geometry import closest_point_triangle, closest_segment_triangle, face_normal
+from .geometry import closest_point_triangle, closest_segment_triangle, face_normal, vertex_angle
 
 
 @njit(cache=True)
@@ -467,7 +467,7 @@ def _signed_distance(px, py, pz, pos, tri, work, seen, best_e):
             if (v[0] - qx) ** 2 + (v[1] - qy) ** 2 + (v[2] - qz) ** 2 <= tol2:
                 u = pos[tri[f, (corner + 1) % 3]]
                 w = pos[tri[f, (corner + 2) % 3]]
-                weight = _angle(v, u, w)    # q at a vertex: weighted by the face's angle there
+                weight = vertex_angle(v, u, w)    # q at a vertex: weighted by the face's angle there
                 break
         sx += weight * work[e, NX]
         sy += weight * work[e, NY]
@@ -475,21 +475,6 @@ def _signed_distance(px, py, pz, pos, tri, work, seen, best_e):
     if (px - qx) * sx + (py - qy) * sy + (pz - qz) * sz < 0.0:
         return -d
     return d
-
-
-@njit(cache=True)
-def _angle(v, u, w):
-    """Angle at v of the triangle (v, u, w), radians."""
-    ax = u[0] - v[0]
-    ay = u[1] - v[1]
-    az = u[2] - v[2]
-    bx = w[0] - v[0]
-    by = w[1] - v[1]
-    bz = w[2] - v[2]
-    cx = ay * bz - az * by
-    cy = az * bx - ax * bz
-    cz = ax * by - ay * bx
-    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
 
 
 @njit(cache=True)
