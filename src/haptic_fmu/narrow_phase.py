@@ -20,8 +20,8 @@ The depth is a continuous function of the tool's configuration, so the force is 
   closest point lies on; Baerentzen and Aanaes 2005). That is correct on both sides of a closed
   shell (the lumen side and the outer side of the aneurysm wall) and of an open surface; "behind
   the nearest face's plane" is not: seen from the lumen, every face of the outer surface has the
-  lumen behind its plane (a catheter node 8 mm inside the lumen got 9 mm of depth and 45 N from
-  that rule). A point behind faces farther than `trust` (the reach within which the broad phase's
+  lumen behind its plane (a catheter node 8 mm inside the lumen would be 9 mm "deep" by that
+  rule). A point behind faces farther than `trust` (the reach within which the broad phase's
   candidates are complete, plus its own motion this step) cannot tell which side it is on and is
   not in contact, unless it remembers entering the wall.
 - **Nodes** are spheres of `radius`: depth = radius - sd, from zero when the sphere first touches,
