@@ -211,12 +211,6 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
             snx = entry_normal[end, 0]
             sny = entry_normal[end, 1]
             snz = entry_normal[end, 2]
-        # the ends' depths measured as the samples are (the segment's candidates and side), so the
-        # excess is zero at both ends whatever side each end itself remembers
-        e0 = max(_excess(0.0, p0, p1, 0.0, 0.0, radius, behind, pos, tri, seg_faces, start, stop, side,
-                         snx, sny, snz, work), 0.0)
-        e1 = max(_excess(1.0, p0, p1, 0.0, 0.0, radius, behind, pos, tri, seg_faces, start, stop, side,
-                         snx, sny, snz, work), 0.0)
         # no face within radius + band of the segment: no sample in reach
         nearest2 = np.inf
         nearest_s = 0.0
@@ -237,6 +231,12 @@ def proximity(pos, vel, tri, node_ptr, node_faces, seg_ptr, seg_faces, tool, too
                 nearest_s = s
         if nearest2 >= reach * reach:
             continue
+        # the ends' depths measured as the samples are (the segment's candidates and side), so the
+        # excess is zero at both ends whatever side each end itself remembers
+        e0 = max(_excess(0.0, p0, p1, 0.0, 0.0, radius, behind, pos, tri, seg_faces, start, stop, side,
+                         snx, sny, snz, work), 0.0)
+        e1 = max(_excess(1.0, p0, p1, 0.0, 0.0, radius, behind, pos, tri, seg_faces, start, stop, side,
+                         snx, sny, snz, work), 0.0)
         if e0 == 0.0 and e1 == 0.0 and 0.0 < nearest_s < 1.0 and nearest2 > 0.0:
             # ends out of contact: the profile's maximum is the segment's closest approach to the
             # wall (exact), when that point is in front of the wall
