@@ -71,7 +71,7 @@ def direct_loop(duration: float) -> float:
     contact.set_tissue_frame(0.0, tissue.surface_positions(), tissue.surface_velocities())
     tolerance = scene["tissue"].description.ports["compliance_tolerance"].start
     n_fast = int(round(duration * 1000))
-    tip_force, tip_stiffness = np.zeros(3), np.zeros((3, 3))
+    tip_force, tip_stiffness, tip_gap = np.zeros(3), np.zeros((3, 3)), np.zeros(3)
     # Contact samples are averaged over (t_f - 1/30, t_f] for the tissue step starting at t_f = f / 30;
     # a sample ending after t_f (t_f is rarely a whole millisecond) belongs to the next window.
     force_sum, next_sum = np.zeros((tissue.n_surface, 3)), np.zeros((tissue.n_surface, 3))
@@ -102,10 +102,12 @@ def direct_loop(duration: float) -> float:
             next_sum[:] = 0.0
             samples, next_samples = next_samples, 0
             frame += 1
-        out = catheter.step(t, 0.001, operator_insertion((k + 1) / 1000), 0.0, tip_force, tip_stiffness=tip_stiffness)
+        out = catheter.step(t, 0.001, operator_insertion((k + 1) / 1000), 0.0, tip_force, tip_stiffness=tip_stiffness,
+                            tip_gap=tip_gap)
         contact_out = contact.step(t, 0.001, out.centerline_positions.reshape(-1, 3))
         tip_force = contact_out.tip_force.copy()
         tip_stiffness = contact_out.tip_stiffness.copy()
+        tip_gap = contact_out.tip_gap.copy()
         if (k + 1) * 30 <= frame * 1000:  # ends by the next tissue step's start
             force_sum += contact_out.tissue_contact_force
             samples += 1

@@ -52,7 +52,7 @@ def probe_force(local, t, point, velocity=(0.0, 0.0, 0.0), *, stiffness=500.0, d
                                    float(penalty_length), fmag)
     node_force = np.zeros((1, 3))
     tissue = np.zeros((local.vertices.size, 3))
-    penalty_kernels.distribute(fmag, face, w, n, s, depth, local.triangles, np.arange(local.vertices.size), 1,
+    penalty_kernels.distribute(fmag, fmag, face, w, n, s, depth, local.triangles, np.arange(local.vertices.size), 1,
                                code, float(stiffness), float(penalty_length), node_force, tissue, np.zeros((0, 3)))
     return node_force[0], (None if face[0] < 0 else -float(depth[0]))
 

@@ -14,7 +14,7 @@ What is recorded, and why
   ``passivity_energy``, the frame counter it used (``tissue_frame``) and, for a probe, its input
   ``tool_positions`` (a continuous source cannot be recorded itself; the input it drives can).
 - catheter: ``tip_position`` and the inputs it stepped with (``insertion``, ``rotation``,
-  ``tip_force``, ``tip_stiffness``). The centerline (31 points, 93 values) is more than a CSV
+  ``tip_force``, ``tip_stiffness``, ``tip_gap``). The centerline (31 points, 93 values) is more than a CSV
   port may hold (64), so it is *replayed*: the Catheter model (``catheter_fmu.model``) is stepped
   offline with the recorded inputs and must reproduce the recorded tip exactly (checked; the
   replay is bit-identical today). That gives every tool point at every millisecond.
@@ -213,8 +213,8 @@ def scene_dict(scene: str, motion: Motion, stiffness: float, duration: float, co
     if info.tool == "probe":
         record["contact"].append("tool_positions")
     else:
-        record["catheter"] = ["tip_position", "insertion", "rotation", "tip_force", "tip_stiffness", "bend_angle",
-                              "tip_force_magnitude"]
+        record["catheter"] = ["tip_position", "insertion", "rotation", "tip_force", "tip_stiffness", "tip_gap",
+                              "bend_angle", "tip_force_magnitude"]
     if "tissue" in data.get("fmu", {}):
         record["contact"].append("tissue_frame")
         record["tissue"] = ["frame", "strain_energy", "kinetic_energy", "max_strain"]
@@ -367,13 +367,15 @@ def replay_centerline(data: dict, catheter: dict, n: int) -> np.ndarray:
     insertion, rotation = catheter["insertion"], catheter["rotation"]
     force = _vectors(catheter, "tip_force", 3)
     stiffness = _vectors(catheter, "tip_stiffness", 9).reshape(-1, 3, 3)
+    gap = _vectors(catheter, "tip_gap", 3)
     tip = _vectors(catheter, "tip_position", 3)
     out = model.reset(float(insertion[0]), float(rotation[0]))
     shape = np.empty((n, model.n_tool, 3))
     shape[0] = np.asarray(out.centerline_positions).reshape(-1, 3)
     t = catheter["t"]
     for j in range(1, n):
-        out = model.step(float(t[j - 1]), DT, float(insertion[j]), float(rotation[j]), force[j], 0.0, stiffness[j])
+        out = model.step(float(t[j - 1]), DT, float(insertion[j]), float(rotation[j]), force[j], 0.0, stiffness[j],
+                         gap[j])
         shape[j] = np.asarray(out.centerline_positions).reshape(-1, 3)
     error = np.abs(shape[:, -1, :] - tip[:n]).max() if n else 0.0
     if error > 1e-12:

@@ -153,3 +153,66 @@ def test_compare_gains_table():
     assert all(abs(r["steady_state_error"]) < 1e-3 for r in rows)
     table = format_gain_table(rows)
     assert len(table.splitlines()) == 4 and "settling_time" in table
+
+
+@pytest.mark.parametrize("speed", [0.01, 0.05])
+def test_regulated_tip_against_a_stiff_wall_does_not_alternate(speed):
+    """Issue 28 (found by the operator-motion fuzzer): pushed at 10-50 mm/s into a 10 kN/m wall
+    with the regulator on, the tip force alternated every step (11 reversals above 10 mN in a row
+    at 50 mm/s). The regulator's command moves the tip through the actuator within the step; the
+    passive bend was solved against the force linearised for its own change only, so the force
+    the actuator's motion added came back one step late with a loop gain near 1. Solved against
+    the whole bend change, the force rises without a reversal of more than 10 mN."""
+    model = CatheterModel(CatheterParameters(controller_mode="regulate"), DT)
+    model.reset(0.075)
+    wall = PlaneWall.inclined(0.08, 20.0, 10000.0)
+    traj = simulate(model, wall, 0.012 / speed + 0.2, lambda t: min(0.075 + speed * t, 0.087), tip_stiffness=True)
+    force = traj.force_magnitude
+    assert force.max() > 0.3                      # the tip did press on the wall
+    step = np.diff(force)
+    reversals = (step[1:] * step[:-1] < 0) & (np.abs(step[1:]) > 0.01) & (np.abs(step[:-1]) > 0.01)
+    assert not reversals.any(), f"force reverses at t = {traj.time[1:-1][reversals][:5]} s"
+
+
+@pytest.mark.parametrize("stiffness", [3000.0, 10000.0])
+@pytest.mark.parametrize("mode", ["off", "regulate"])
+def test_a_tip_released_by_a_fast_retraction_leaves_the_wall_without_bouncing(mode, stiffness):
+    """Issue 28 (found by the operator-motion fuzzer): pressed on the wall, then pulled back at
+    0.2 m/s, the tip springs back toward the wall by its passive relaxation (about 50 um in a
+    millisecond). Knowing the wall only where the force was not zero, the passive bend sprang into
+    it by a whole step, was thrown out the next step, and touched again (force reversals at 3000
+    and 10000 N/m). With the tip's clearance (the Contact FMU's tip_gap, the plane's here) it meets
+    the wall within the step and leaves it once: the force falls without a reversal."""
+    model = CatheterModel(CatheterParameters(controller_mode=mode), DT)
+    model.reset(0.075)
+    wall = PlaneWall.inclined(0.08, 20.0, stiffness)
+    traj = simulate(model, wall, 0.6, lambda t: float(np.interp(t, [0.0, 0.3, 0.32], [0.075, 0.083, 0.079])),
+                    tip_stiffness=True)
+    force = traj.force_magnitude
+    assert force[:300].max() > 0.15 and force[-200:].max() == 0.0   # pressed, then released
+    step = np.diff(force)
+    reversals = (step[1:] * step[:-1] < 0) & (np.abs(step[1:]) > 0.01) & (np.abs(step[:-1]) > 0.01)
+    assert not reversals.any(), f"force reverses at t = {traj.time[1:-1][reversals][:5]} s"
+
+
+def test_the_regulator_holds_its_bending_side_while_the_force_wavers_about_the_perpendicular():
+    """Issue 28 (found by the operator-motion fuzzer: the catheter in the tube rolled through a
+    quarter turn at 5000 N/m): with the bending plane nearly perpendicular to the wall's force,
+    the tip's own motion turned the force across the perpendicular every step (F . d between
+    -0.03 and +0.03 |F|) and the regulator, taking the side at 1 % of |F|, flipped its whole
+    command (+-0.56 rad): the actuator slewed from side to side at 500 Hz and the force buzzed by
+    70 mN. During a contact the side is now held until the force is 11.5 degrees past the
+    perpendicular; a new contact still takes its side at 1 %."""
+    from catheter_fmu.controller import DIRECTION_HYSTERESIS, ForceRegulator
+
+    regulator = ForceRegulator(kp=0.3, ki=0.0, setpoint=0.4, max_angle=1.5)
+    full = 0.3 * (1.0 - 0.4)
+    assert regulator.command(1.0, -0.02, DT) == pytest.approx(-full)      # a new contact: its side at 1 %
+    wavering = [0.03, -0.03, 0.15, -0.19, 0.1, -0.05]
+    assert [regulator.command(1.0, x, DT) for x in wavering] == pytest.approx([-full] * len(wavering))
+    assert math.asin(DIRECTION_HYSTERESIS) == pytest.approx(math.radians(11.5), abs=0.01)
+    assert regulator.command(1.0, 0.25, DT) == pytest.approx(full)         # clearly on the other side
+    assert regulator.command(1.0, -0.1, DT) == pytest.approx(full)         # and held there
+    # the contact ends: the side is held without force, and the next contact takes its own
+    assert regulator.command(0.0, 0.0, DT) == 0.0 and regulator.direction == 1.0
+    assert regulator.command(1.0, -0.05, DT) == pytest.approx(-full)

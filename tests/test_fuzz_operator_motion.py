@@ -174,19 +174,19 @@ def energy_judge(trace: om.Trace) -> list[str]:
     return om.cycle_energy(trace, om.ENERGY_REL_TOL, om.ENERGY_ABS_TOL)
 
 
-#: Found by this fuzzer, open in issue 28: a catheter pushed fast (45-60 mm/s) into the rigid tube,
-#: or deep into the sac with its tip rolled, at 10000 N/m alternates up to 5 N at 500 Hz through its
-#: tip's loop (the controller and the passive tip against a force one step old), with the sampled law
-#: as with the energy-consistent hold. Until that loop is fixed the catheter scenes' cases are run and
-#: counted, and a failure is reported as an expected one; which case hits it depends on the machine
-#: (the derandomized cases differed between this checkout and a fresh clone), so the mark is not strict.
-TIP_LOOP = pytest.mark.xfail(strict=False, reason="issue 28: the catheter's tip loop alternates at 10 kN/m under "
-                                                  "fast or deep insertion")
+#: Found by this fuzzer, open in issue 28: the catheter's tip pressed 2-2.5 N deep into the 30 Hz
+#: sac at 10000 N/m and rolled (or pushed and rolled, then retracted) alternates by 35-250 mN in
+#: bursts, where a new tissue frame moves the wall under it (the wall's frames, not the tip's loop:
+#: the same motions in the rigid tube pass). Until the multirate coupling is fixed the scene's
+#: cases are run and counted, and a failure is reported as an expected one; which case hits it
+#: depends on the generated sequence, so the mark is not strict.
+SAC_ROLL = pytest.mark.xfail(strict=False, reason="issue 28: a tip pressed deep into the 30 Hz sac at 10 kN/m and "
+                                                  "rolled alternates where the tissue frames move the wall")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("scene", [pytest.param(scene, marks=TIP_LOOP) if om.CONTACT_SCENES[scene].tool == "catheter"
-                                   else scene for scene in om.CONTACT_SCENES])
+@pytest.mark.parametrize("scene", [pytest.param(scene, marks=SAC_ROLL) if scene == "aaa_endovascular" else scene
+                                   for scene in om.CONTACT_SCENES])
 def test_random_operator_motions_render_a_sound_contact(scene, built, case_log, tmp_path_factory):
     """Every case completes with a finite tissue, no force step beyond k x the tool's motion, no
     alternation, no unexplained (phantom) force, and a port energy output that agrees with the

@@ -95,22 +95,24 @@ def test_contact_worker_matches_in_process_bitwise(contact_fmu):
     assert 20 < touching.sum() < 180
     assert np.all(np.linalg.norm(force[~touching], axis=1) == 0.0)
     # while the tool moves out (first half) the wall pushes it back towards the axis (-x); while
-    # it retracts, penalty damping may pull slightly. The tissue always gets the reaction, and the
-    # device its share of it: all of it up to the device's 7.9 N, then 7.9 N (the 2 mm deep piece
-    # asks for up to 8.8 N)
+    # it retracts, penalty damping may pull slightly. The tissue gets the reaction of the law's
+    # force at the sampled depths; the device the force held over the predicted depths (the tool
+    # moves up to 0.16 mm a step: 0.2-5.5 times the law's), along the same normals: all of it up
+    # to the device's 7.9 N, then 7.9 N (the 2 mm deep piece asks for more)
     pushing = touching & (np.arange(len(local)) <= 100)
     assert pushing.sum() > 10 and np.all(force[pushing, 0] < 0.0)
     limited = 0
     for r in (r for r, t in zip(local, touching) if t):
         reaction = r["tissue_contact_force"].reshape(-1, 3).sum(axis=0)
-        if np.linalg.norm(reaction) <= 7.9:
-            np.testing.assert_allclose(reaction, -r["tool_force"], rtol=1e-9, atol=1e-12)
-        else:
-            limited += 1
-            assert np.linalg.norm(r["tool_force"]) == pytest.approx(7.9, rel=1e-12)
+        held = np.linalg.norm(r["tool_force"])
+        if held > 0.0 and np.linalg.norm(reaction) > 0.0:
             # along the reaction, but for the direction's change within a step (the rate limit
-            # blends in the previous sample's force)
-            np.testing.assert_allclose(r["tool_force"] / 7.9, -reaction / np.linalg.norm(reaction), atol=1e-6)
+            # blends in the previous sample's force) and the contacts' normals along the tool (within
+            # 1e-5 of each other), which the held and the law's forces weight differently
+            np.testing.assert_allclose(r["tool_force"] / held, -reaction / np.linalg.norm(reaction), atol=1e-5)
+        if held == pytest.approx(7.9, rel=1e-12):
+            limited += 1
+        assert held <= 7.9 * (1 + 1e-12)
     assert limited > 0
     for a, b in zip(local, remote):
         assert a.keys() == b.keys() == set(CONTACT_OUTPUTS)

@@ -123,11 +123,15 @@ class PlaneWall:
         return self.stiffness * pen * self._n if pen > 0.0 else np.zeros(3)
 
     def stiffness_matrix(self, p) -> np.ndarray:
-        """(3, 3) ``-d force / d p`` at tip position p (N/m): ``k n n^T`` in contact, else zeros
-        (what the Contact FMU outputs as ``tip_stiffness``)."""
-        if self.penetration(p) > 0.0:
-            return self.stiffness * np.outer(self._n, self._n)
-        return np.zeros((3, 3))
+        """(3, 3) ``-d force / d p`` at tip position p (N/m): ``k n n^T``, in contact or the stiffness
+        a tip clear of the plane will meet (what the Contact FMU outputs as ``tip_stiffness``, with
+        ``tip_gap``: its reach is finite, the plane's is not)."""
+        return self.stiffness * np.outer(self._n, self._n)
+
+    def gap(self, p) -> np.ndarray:
+        """(3,) the clearance ``g n`` of a tip at p clear of the plane, zeros in contact (what the
+        Contact FMU outputs as ``tip_gap``)."""
+        return max(-self.penetration(p), 0.0) * self._n
 
 
 # --------------------------------------------------------------------------------------
@@ -173,8 +177,9 @@ def simulate(
 
     ``insertion``, ``rotation`` and ``external_command`` are constants or functions of time
     (evaluated at the start of each step, held over it). ``tip_stiffness``: pass the wall's
-    stiffness at the last tip position with its force, as the scenes connect the Contact FMU's
-    ``tip_stiffness`` (the implicit passive bend); False: the force only (explicit).
+    stiffness and the tip's clearance at the last tip position with its force, as the scenes
+    connect the Contact FMU's ``tip_stiffness`` and ``tip_gap`` (the implicit passive bend); False:
+    the force only (explicit).
     """
     dt = model.dt
     n = int(round(duration / dt))
@@ -186,13 +191,15 @@ def simulate(
     tip_hist = np.empty((n, 3))
     force = wall.force(model.outputs.tip_position)
     stiffness = wall.stiffness_matrix(model.outputs.tip_position) if tip_stiffness else None
+    gap = wall.gap(model.outputs.tip_position) if tip_stiffness else None
     for k in range(n):
         t = t_start + k * dt
         s = ins(t)
-        o = model.step(t, dt, s, rot(t), force, ext(t), stiffness)
+        o = model.step(t, dt, s, rot(t), force, ext(t), stiffness, gap)
         force = wall.force(o.tip_position)
         if tip_stiffness:
             stiffness = wall.stiffness_matrix(o.tip_position)
+            gap = wall.gap(o.tip_position)
         out["insertion"][k] = s
         force_hist[k] = force
         tip_hist[k] = o.tip_position

@@ -4,8 +4,12 @@ Regulator (mode ``regulate``): PI on the force excess ``e = |F| - F_set`` with
 ``F_set = setpoint_fraction * force_threshold``. Its output ``u >= 0`` is how far (rad) to bend
 the tip *away from the contact*, i.e. toward the force the wall exerts on the tip; with a
 one-DOF bending plane (direction ``d`` set by the operator's rotation) the signed command is
-``sign(F . d) * u``. The sign is held when ``|F . d|`` is below 1 % of ``|F|`` (contact normal
-nearly out of the bending plane, or no contact) so the command does not chatter.
+``sign * u``: the side of the plane the force is on. A new contact takes its side as soon as
+``|F . d|`` exceeds 1 % of ``|F|``; during a contact the side is held until the force is clearly on
+the other one, ``F . d`` beyond ``DIRECTION_HYSTERESIS |F|`` (0.2: 11.5 degrees past perpendicular);
+without force it is held. Taken at 1 % throughout, the tip's own motion can turn the force across the
+perpendicular every step and the whole command flips with it: the actuator slews from one side to
+the other every millisecond, a 500 Hz buzz of the force.
 
 Anti-windup by conditional integration plus clamping: the integral stops growing while the
 output is saturated (angle limit, or ``u = 0``) or the actuator is slew-limited, and the error
@@ -28,12 +32,16 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["ForceRegulator", "EffortMonitor", "insertion_scale"]
 
-# Below this fraction of |F| the force has no usable component in the bending plane.
+# |F . d| / |F| beyond which a new contact's force has a side of the bending plane.
 _DIRECTION_DEADBAND = 0.01
+# |F . d| / |F| beyond which the force of a contact is on the other side of the bending plane (the
+# sine of 11.5 degrees): the bending direction flips only then.
+DIRECTION_HYSTERESIS = 0.2
 
 
 class ForceRegulator:
-    """PI force regulator; state: ``integral`` (rad) and the held bending ``direction`` (+1/-1)."""
+    """PI force regulator; state: ``integral`` (rad), the held bending ``direction`` (+1/-1) and
+    whether a contact has given it (``touching``)."""
 
     def __init__(self, kp: float, ki: float, setpoint: float, max_angle: float, anti_windup: bool = True) -> None:
         self.kp = float(kp)
@@ -43,11 +51,13 @@ class ForceRegulator:
         self.anti_windup = bool(anti_windup)
         self.integral = 0.0
         self.direction = 1.0
+        self.touching = False
         self.saturated = False
 
     def reset(self) -> None:
         self.integral = 0.0
         self.direction = 1.0
+        self.touching = False
         self.saturated = False
 
     def command(self, force_magnitude: float, force_along_bend: float, dt: float, actuator_limited: int = 0) -> float:
@@ -56,8 +66,14 @@ class ForceRegulator:
         ``actuator_limited``: +1 / -1 if the actuator's last step was slew-limited upward /
         downward (in bend-angle sign), else 0.
         """
-        if abs(force_along_bend) > _DIRECTION_DEADBAND * force_magnitude:
-            self.direction = 1.0 if force_along_bend > 0.0 else -1.0
+        if force_magnitude <= 0.0:
+            self.touching = False
+        elif not self.touching:
+            if abs(force_along_bend) > _DIRECTION_DEADBAND * force_magnitude:
+                self.direction = 1.0 if force_along_bend > 0.0 else -1.0
+                self.touching = True
+        elif force_along_bend * self.direction < -DIRECTION_HYSTERESIS * force_magnitude:
+            self.direction = -self.direction
         error = force_magnitude - self.setpoint
         unsat = self.kp * error + self.integral
         u = min(max(unsat, 0.0), self.max_angle)

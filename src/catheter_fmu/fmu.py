@@ -57,6 +57,7 @@ LIMITS = {
                                   "connection or unit"),
     "tip_stiffness": Limit(-1e9, 1e9, "the contact's stiffness is at most about 1e6 N/m (Contact's limit) times a "
                                       "few facets"),
+    "tip_gap": Limit(-1.0, 1.0, "the tip's clearance to the wall is at most the contact's reach (millimetres)"),
 }
 
 _defaults = CatheterParameters()
@@ -76,6 +77,8 @@ VARIABLES = (
     input_port("tip_force", "contact force on the tip (from Contact)", "N", shape=(3,)),
     input_port("tip_stiffness", "stiffness of tip_force against the tip's motion, -d tip_force / d tip (from "
                "Contact; zeros: the passive bend is integrated explicitly)", "N/m", shape=(3, 3)),
+    input_port("tip_gap", "clearance of the tip to the wall along the normal it will meet, when near it without "
+               "force (from Contact, with tip_stiffness; zeros: in contact or far)", "m", shape=(3,)),
     output("centerline_positions", "catheter centerline points, proximal first, tip last", "m",
            shape=("n_tool_points", 3)),
     output("tip_position", "tip position", "m", shape=(3,)),
@@ -127,7 +130,7 @@ class CatheterFmu:
     def step(self, t: float, dt: float) -> None:
         v = self.values
         out = self.model.step(t, dt, v.insertion, v.rotation, v.tip_force, v.external_command,
-                              v.tip_stiffness)
+                              v.tip_stiffness, v.tip_gap)
         # the model writes the arrays into the FMU's buffers; a model restored from an FMU state (a
         # copy) wrote this step into its own: bind it to the buffers again (they take this step's values)
         if out.tip_position is not v.tip_position:

@@ -268,18 +268,37 @@ def tip_jacobian(frame4, b1, b2, link_fraction, segment_length, out):
 
 @njit(cache=True)
 def implicit_passive_bend(frame4, b1, b2, link_fraction, segment_length, K, jac, p1, p2, target1, target2, alpha,
-                          gain):
+                          gain, da1, da2, gap):
     """One step of the passive bend (p1, p2) against the force linearised at its new value.
 
     Explicit, the bend relaxes toward gain * F_n across the tangent (target1, target2):
     pb' = pb + alpha (target - pb). With K = -dF/dx (3, 3) of the contact at the shape the force
     came from (total bend (b1, b2)) and J = d tip / d bend there (``tip_jacobian``, into jac),
-    the force at the new bend is F_n - K J (pb' - pb), so
-    (I + alpha gain P K J) (pb' - pb) = alpha (target - pb), P the rows e1, e2 of frame4.
+    the force at the new bend is F_n - K J (pb' - pb + da), da = (da1, da2) the actuator's bend
+    change in this step, so
+    (I + alpha gain P K J) (pb' - pb) = alpha (target - pb) - alpha gain P K J da, P the rows e1, e2
+    of frame4. Leaving da out treats the force the actuator's own motion adds as one step late:
+    against a stiff wall the regulator's command then returns through the wall with a gain near 1
+    and the tip force alternates every step.
+    A tip near the wall that carries no force comes with its clearance ``gap`` (3,) = g n and the
+    stiffness K it will meet (the Contact FMU's tip_gap): the force is then the one-sided
+    F = -K (J (pb' - pb + da) + gap) alone (F_n, zero or a release's pull, is what it is at
+    J (pb' - pb + da) = 0, and target is not used), solved as above with K gap on the right; a
+    solution where it would pull (F . gap <= 0: the step does not reach the wall) is the free step
+    (status 3).
     Returns (pb1', pb2', status): status 1 solved; 0 K is zero (nothing to linearise: the caller
     takes the explicit step); 2 the 2x2 system is not positive (K J not restoring there: explicit);
-    -1 K is not finite.
+    3 the free tip does not reach the wall in this step (explicit); -1 K or gap is not finite.
     """
+    g0 = gap[0]
+    g1 = gap[1]
+    g2 = gap[2]
+    if not (math.isfinite(g0) and math.isfinite(g1) and math.isfinite(g2)):
+        return p1, p2, -1
+    clear = g0 != 0.0 or g1 != 0.0 or g2 != 0.0
+    if clear:
+        target1 = 0.0
+        target2 = 0.0
     zero = True
     for r in range(3):
         for c in range(3):
@@ -317,9 +336,28 @@ def implicit_passive_bend(frame4, b1, b2, link_fraction, segment_length, K, jac,
     a01 = ag * m01
     a10 = ag * m10
     a11 = 1.0 + ag * m11
-    r1 = alpha * (target1 - p1)
-    r2 = alpha * (target2 - p2)
+    # P K gap: the force the clearance takes off (zero in contact)
+    kg1 = 0.0
+    kg2 = 0.0
+    for r in range(3):
+        kg = K[r, 0] * g0 + K[r, 1] * g1 + K[r, 2] * g2
+        kg1 += frame4[2, r] * kg
+        kg2 += frame4[3, r] * kg
+    r1 = alpha * (target1 - p1) - ag * (m00 * da1 + m01 * da2 + kg1)
+    r2 = alpha * (target2 - p2) - ag * (m10 * da1 + m11 * da2 + kg2)
     det = a00 * a11 - a01 * a10
     if not (det > 0.0 and math.isfinite(det)):
         return p1, p2, 2
-    return p1 + (a11 * r1 - a01 * r2) / det, p2 + (a00 * r2 - a10 * r1) / det, 1
+    d1 = (a11 * r1 - a01 * r2) / det
+    d2 = (a00 * r2 - a10 * r1) / det
+    if clear:
+        # F . gap with F = -K (J (d + da) + gap): a pull means the free step stays clear of the wall
+        push = 0.0
+        for r in range(3):
+            u = 0.0
+            for c in range(3):
+                u += K[r, c] * (jac[c, 0] * (d1 + da1) + jac[c, 1] * (d2 + da2) + gap[c])
+            push -= u * gap[r]
+        if not push > 0.0:
+            return p1, p2, 3
+    return p1 + d1, p2 + d2, 1

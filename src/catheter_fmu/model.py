@@ -29,9 +29,12 @@ so the passive bend closes a loop through the contact with gain ``G = k_contact 
 quasi-static, tau = 0, needs G < 1, below ~150 N/m). With the input ``tip_stiffness``
 ``K = -dF/dx`` of the contact (the Contact FMU's output of the same name: the penalty slope, with
 the wall's compliance ``k / (1 + k w)``), the bend is solved against the force linearised at its
-new value, ``F_n - K J (pb' - pb)`` (``J`` = d tip / d bend): the error then shrinks by
-``(1 - alpha) / (1 + alpha G)`` per step, stable and monotone at every stiffness and for tau = 0
-too. Without it (zeros) the step is the explicit one. The time constant stands for the tip's
+new value, ``F_n - K J (pb' - pb + da)`` (``J`` = d tip / d bend, ``da`` the actuator's bend change
+in this step): the error then shrinks by ``(1 - alpha) / (1 + alpha G)`` per step, stable and
+monotone at every stiffness and for tau = 0 too, and the force the actuator's own motion adds is
+met in the step it is made (the regulator's command does not return through a stiff wall one step
+late). With ``tip_gap`` the bend also meets a wall the tip has not touched yet (one-sided, see
+``kernels.implicit_passive_bend``). Without them (zeros) the step is the explicit one. The time constant stands for the tip's
 structural and blood damping. See ``analysis.contact_loop_gain``.
 
 Default bending stiffness: a 6 Fr (2.0 mm OD, 1.4 mm ID) Pebax 72D tube, E ~ 0.5 GPa,
@@ -269,10 +272,12 @@ class CatheterModel:
         )
         self.mode = params.controller_mode
         self._bound = None  # (centerline (n_tool, 3), the same flat, tip) arrays of write_outputs_into
+        self._no_gap = np.zeros(3)
         self.reset()
         # load (or compile) the implicit passive bend's kernel now, not at the first 1 kHz step
         kernels.implicit_passive_bend(self.kinematics.frame, 0.0, 0.0, self._link_fraction, params.segment_length,
-                                      np.eye(3), self._jacobian, 0.0, 0.0, 0.0, 0.0, 0.5, self.passive_gain)
+                                      np.eye(3), self._jacobian, 0.0, 0.0, 0.0, 0.0, 0.5, self.passive_gain, 0.0, 0.0,
+                                      np.zeros(3))
 
     # ----------------------------------------------------------------------------------
 
@@ -338,6 +343,7 @@ class CatheterModel:
             "rate_limited": self.actuator.rate_limited,
             "integral": self.regulator.integral,
             "direction": self.regulator.direction,
+            "touching": self.regulator.touching,
             "warning": self.monitor.warning,
             "passive_bend": self.passive_bend.copy(),
             "mode": self.mode,
@@ -350,6 +356,7 @@ class CatheterModel:
         self.actuator.rate_limited = state["rate_limited"]
         self.regulator.integral = state["integral"]
         self.regulator.direction = state["direction"]
+        self.regulator.touching = state["touching"]
         self.monitor.warning = state["warning"]
         self.passive_bend = state["passive_bend"].copy()
         self.mode = state["mode"]
@@ -374,14 +381,16 @@ class CatheterModel:
         return dt
 
     def step(self, t: float, dt: float, insertion: float, rotation: float, tip_force, external_command: float = 0.0,
-             tip_stiffness=None):
+             tip_stiffness=None, tip_gap=None):
         """Advance from t to t + dt with the inputs held; return (and store) the outputs.
 
         insertion (m), rotation (rad), tip_force (3,) force ON the tip from the wall (N),
         external_command (rad, used in mode "external"), tip_stiffness (3, 3) or 9 values,
         ``K = -d tip_force / d tip_position`` (N/m) where tip_force was computed, or None (zeros):
         the passive bend is integrated against the force linearised at its new value (see the
-        module docstring).
+        module docstring); tip_gap (3,) m, with tip_stiffness, the clearance g n of a tip near the
+        wall that carries no force, or None (zeros): the bend meets the wall in the step it reaches
+        it (one-sided).
         """
         dt = self._check_step(dt)
         insertion = _number("insertion", insertion, "0.05 (m)")
@@ -417,7 +426,9 @@ class CatheterModel:
         p1, p2 = self.passive_bend.tolist()
         bend1 = self.actuator.angle * cos_r + p1
         bend2 = self.actuator.angle * sin_r + p2
+        angle_before = self.actuator.angle
         self.actuator.step(command, dt)
+        moved = self.actuator.angle - angle_before
 
         g = self.passive_gain
         target1 = g * f1
@@ -429,11 +440,13 @@ class CatheterModel:
         if tip_stiffness is not None:
             new1, new2, status = kernels.implicit_passive_bend(
                 frame, bend1, bend2, self._link_fraction, self.params.segment_length, self._stiffness(tip_stiffness),
-                self._jacobian, p1, p2, target1, target2, 1.0 - keep, g)
+                self._jacobian, p1, p2, target1, target2, 1.0 - keep, g, moved * cos_r, moved * sin_r,
+                self._gap(tip_gap))
             if status < 0:
                 raise CatheterParameterError(
-                    f"tip_stiffness must be finite (got {np.asarray(tip_stiffness).tolist()}): check the contact"
-                    " component's output")
+                    f"tip_stiffness and tip_gap must be finite (got {np.asarray(tip_stiffness).tolist()} and "
+                    f"{None if tip_gap is None else np.asarray(tip_gap).tolist()}): check the contact component's"
+                    " outputs")
         if status == 1:
             pb[0] = new1
             pb[1] = new2
@@ -455,6 +468,18 @@ class CatheterModel:
         if k.size != 9:
             raise CatheterParameterError(f"tip_stiffness must have 3x3 = 9 values (N/m) (got shape {k.shape})")
         return np.ascontiguousarray(k.reshape(3, 3))
+
+    def _gap(self, tip_gap) -> np.ndarray:
+        """The tip's clearance to the wall as a (3,) float64 array (zeros when not given)."""
+        if tip_gap is None:
+            return self._no_gap
+        g = tip_gap
+        if type(g) is np.ndarray and g.shape == (3,) and g.dtype == np.float64:  # the 1 kHz common case
+            return g
+        g = np.asarray(g, dtype=np.float64)
+        if g.size != 3:
+            raise CatheterParameterError(f"tip_gap must have 3 values (m) (got shape {g.shape})")
+        return np.ascontiguousarray(g.reshape(3))
 
     def _outputs_from(self, insertion, rotation, command, force_magnitude, frame, cos_r=None, sin_r=None) -> None:
         """Shape and outputs; ``frame`` is the (4, 3) base frame array of this insertion."""

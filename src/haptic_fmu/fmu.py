@@ -134,7 +134,11 @@ VARIABLES = (
     output("tool_force", "total force on the tool (device)", "N", shape=(3,)),
     output("tip_force", "force on the last tool point (catheter tip)", "N", shape=(3,)),
     output("tip_stiffness", "stiffness of tip_force against the tip's motion, -d tip_force / d tip (3x3, to "
-           "Catheter: its passive bend is integrated against it)", "N/m", shape=(3, 3)),
+           "Catheter: its passive bend is integrated against it); for a tip near the wall that carries no force, "
+           "the stiffness it will meet on touching", "N/m", shape=(3, 3)),
+    output("tip_gap", "clearance of a catheter tip near the wall that carries no force, along the normal it will "
+           "meet (to Catheter, with tip_stiffness: the passive bend meets the wall in the step it reaches it); "
+           "zeros in contact or far from the wall", "m", shape=(3,)),
     output("tissue_contact_force", "contact forces on the tissue surface nodes (to Tissue)", "N", shape=PER_NODE),
     output("penetration_depth", "largest interpenetration", "m"),
     output("contact_energy", "penalty potential energy", "J"),
@@ -192,6 +196,7 @@ class ContactFmu:
         if out.tissue_contact_force is not v.tissue_contact_force:
             model.write_outputs_into(v.tool_force, v.tip_force, v.tissue_contact_force, v.patch_nodes)
         v.tip_stiffness = out.tip_stiffness
+        v.tip_gap = out.tip_gap
         v.penetration_depth = out.penetration_depth
         v.contact_count = out.contact_count
         v.contact_energy = out.contact_energy

@@ -59,7 +59,7 @@ import numpy as np
 from . import aabb, aabb_kernels, ccd, narrow_phase, penalty_kernels
 from . import rendering_kernels
 from .geometry import all_finite, difference_velocity, max_displacement, max_displacement_rows
-from .device import DEFAULT_MAX_FORCE_RATE, PHANTOM_DESKTOP_MAX_FORCE, REQUESTED_TIP, DeviceSpec, ForceLimiter
+from .device import DEFAULT_MAX_FORCE_RATE, PHANTOM_DESKTOP_MAX_FORCE, DeviceSpec, ForceLimiter
 from .passivity import DEFAULT_CYCLE_TOLERANCE, PassiveRenderer
 from .penalty import PENALTY_LAWS, law_code
 from .rendering import (FREE_MOTIONS, LOCAL_POLICIES, ComplianceError, LocalModel, WallCompliance,
@@ -182,17 +182,20 @@ class ContactParameters:
 class ContactOutputs:
     """Outputs of one haptic step. Arrays are the model's buffers: copy them to keep them.
 
-    tissue_contact_force sums to -tool_force exactly (action-reaction), except for the damping the
-    passivity controller adds on the tool side when it is on (a device-side element, not a contact),
-    and while the device limit engages (`force_limited`): tool_force and node_forces are the force
-    the haptic port renders, limited to the device (device.py), while tip_force (the catheter's
-    input) and tissue_contact_force stay the physical contact force, as CHAI3D limits only what it
-    sends to the device.
+    The haptic port (tool_force, node_forces) renders the held force: the law's mean over the
+    depths the tool's motion predicts for the next millisecond (energy_consistent), limited to the
+    device (`force_limited`, device.py), with the passivity controller's damping when it is on. The
+    wall (tissue_contact_force) and the catheter's tip (tip_force, tip_stiffness, tip_gap) get the
+    law's force at the sampled depths (penalty_kernels.distribute, tip_response): the prediction,
+    the device limit and the controller belong to the port, as CHAI3D limits only what it sends to
+    the device. So tissue_contact_force sums to -tool_force where the tool rests and nothing is
+    limited, and differs from it by the prediction's share, k v dt / 2 per contact, while it moves.
     """
 
     tool_force: np.ndarray             # (3,) total force on the tool as the device renders it, N
-    tip_force: np.ndarray              # (3,) physical force on the last tool point (before the device limit), N
+    tip_force: np.ndarray              # (3,) the wall's law on the last tool point, N (penalty_kernels.tip_response)
     tip_stiffness: np.ndarray          # (3,3) -d tip_force / d (last tool point), N/m (penalty_kernels.tip_stiffness)
+    tip_gap: np.ndarray                # (3,) clearance g n of a tip near the wall carrying no force, m (penalty_kernels.tip_gap)
     tissue_contact_force: np.ndarray   # (n_surface,3) nodal forces on the surface, N
     node_forces: np.ndarray            # (n_tool,3) force on each tool point as rendered (sums to tool_force), N
     penetration_depth: float           # max over contacts, m
@@ -224,6 +227,10 @@ def _float_array(name, value, n, fix):
 #: (the linear law needs 1-2 on a fixed contact set).
 COMPLIANCE_MAX_ITERATIONS = 8
 COMPLIANCE_TOLERANCE = 1e-13
+
+#: m: the step of the central differences of the tip's contact normal (narrow_phase.normal_jacobian):
+#: far below the 0.1 mm over which the blended normal turns, far above round-off of the positions.
+NORMAL_JACOBIAN_STEP = 1e-6
 
 _WARMED = set()
 
@@ -322,16 +329,25 @@ class ContactModel:
         self._contact_point = np.zeros((n_prim, 3))
         self._trust = np.zeros(self.n_tool)            # how deep behind the wall a node may be found (narrow phase)
         self._contact_ahead = np.zeros(n_prim)        # depth change predicted over the hold (energy_consistent)
+        self._ahead_before = np.zeros(n_prim)         # last step's prediction (narrow_phase.approach)
         self._tool_older = None                       # tool positions two steps back (the hold's prediction)
-        self._tool_pred_vel = np.zeros((self.n_tool, 3))
+        self._tool_vel_older = np.zeros((self.n_tool, 3))   # the tool's velocity over the step before
         self._older_dt = 0.0
-        self._ahead_gain = 0.0
         self._near_dist = np.zeros(self.n_tool)
         self._blend_work = np.zeros((1, narrow_phase.WORK_COLUMNS))
-        self._fmag = np.zeros(n_prim)
+        self._fmag = np.zeros(n_prim)                 # the haptic port's held force per contact
+        self._fmag_wall = np.zeros(n_prim)            # the law's force per contact (the wall, the tip)
+        self._no_ahead = np.zeros(n_prim)
         # output buffers
         self._node_force = np.zeros((self.n_tool, 3))
         self._tip_stiffness = np.zeros((3, 3))
+        self._tip_gap = np.zeros(3)
+        self._tip_dn = np.zeros((3, 3))               # d (the tip's contact normal) / d (its position)
+        self._band = 0.0                              # the narrow phase's band at the last step
+        self._tip_force = np.zeros(3)                 # the law's force on the tip (penalty_kernels.tip_response)
+        self._no_slot = np.zeros(0, np.int64)
+        self._no_W = np.zeros((0, 0))
+        self._tip_near = np.zeros(4)                 # the free tip's (clearance, normal) (narrow_phase.clearance)
         self._tissue_force = np.zeros((self.n_surface, 3))
         self._outputs = None            # (tool force, tip force, patch nodes) arrays of write_outputs_into
         self._no_patch = np.zeros(0, np.int64)
@@ -515,6 +531,7 @@ class ContactModel:
         pos0, pos1 = self._render_geometry(float(t) + float(dt), float(dt))   # rendering: where the wall is
         self._narrow_phase(pos0, pos1, tool0, tool1, tool_vel)
         max_depth, count, energy = self._response(float(dt))
+        self._tip_response(pos1, tool1, float(dt))
         if self.compliance is not None:
             self._name_patch(tool1)
         node_force = self._passivity(tool1, tool_vel, float(dt), float(t) + float(dt))
@@ -524,14 +541,12 @@ class ContactModel:
         renderer = self._renderer
         limited = renderer.force_limited
         if self._outputs is None:
-            tool_force, tip_force = node_force.sum(axis=0), node_force[-1].copy()
-            if limited:  # the device limited the port; the catheter's tip keeps the physical contact force
-                tip_force[...] = renderer.limiter.report[REQUESTED_TIP]
-        else:  # write_outputs_into (the tip's physical force likewise)
+            tool_force, tip_force = node_force.sum(axis=0), self._tip_force.copy()
+        else:  # write_outputs_into
             self._publish(node_force)
             tool_force, tip_force = self._outputs[0], self._outputs[1]
         return ContactOutputs(
-            tool_force=tool_force, tip_force=tip_force, tip_stiffness=self._tip_stiffness,
+            tool_force=tool_force, tip_force=tip_force, tip_stiffness=self._tip_stiffness, tip_gap=self._tip_gap,
             tissue_contact_force=self._tissue_force, node_forces=self._node_force,
             penetration_depth=float(max_depth), contact_count=int(count), contact_energy=float(energy),
             passivity_energy=renderer.energy, force_limited=limited,
@@ -554,17 +569,14 @@ class ContactModel:
             tool_vel = self._tool_vel
             difference_velocity(tool1, tool0, float(dt), tool_vel)
             if self._tool_older is None:
-                self._tool_pred_vel[...] = tool_vel
-                self._ahead_gain = 1.0          # d (predicted depth change) / d (this sample's depth)
-            else:   # the mean velocity over the last two steps
-                span = float(dt) + self._older_dt
-                difference_velocity(tool1, self._tool_older, span, self._tool_pred_vel)
-                self._ahead_gain = float(dt) / span
+                self._tool_vel_older[...] = tool_vel
+            else:   # the step before's velocity: the prediction limits the two (narrow_phase.approach)
+                difference_velocity(tool0, self._tool_older, self._older_dt, self._tool_vel_older)
         else:
             tool_vel = _float_array("tool_velocities", tool_velocities, self.n_tool,
                                     "give the tool point velocities in m/s, or None to difference positions")
-            self._tool_pred_vel[...] = tool_vel
-            self._ahead_gain = 0.0
+            self._tool_vel[...] = tool_vel      # the velocity the prediction reads (narrow_phase.approach)
+            self._tool_vel_older[...] = tool_vel
         if self.params.detection == "discrete" and not self._tunnel_warned:
             # Discrete detection sees only where the tool is at each sample: a tool that moves
             # farther than the margin in one step can pass through a thin wall unseen (measured by
@@ -614,6 +626,7 @@ class ContactModel:
         # the candidates are complete within margin / 2 of the tool's sphere (the broad phase queries
         # boxes of margin + radius, and again whenever the tool has moved margin / 2); a node found
         # behind the wall may also have crossed it within this step's motion
+        self._band = band
         trust = self._trust
         max_displacement_rows(tool1, tool0, trust)
         trust += self.radius + 0.5 * self.params.margin
@@ -629,24 +642,22 @@ class ContactModel:
         displacement)."""
         p = self.params
         c = self.compliance
-        ahead, gain = self._contact_ahead, 0.0
+        ahead = self._contact_ahead
         if p.energy_consistent:
             # the depth change the tool's motion predicts over the step the force will be held
-            # (penalty.py), from its mean velocity over the last two steps: exact for a steady motion,
-            # and blind to a period-2 oscillation, which a one-step difference would feed back
+            # (penalty.py), from its last two steps' approach speeds, limited (narrow_phase.approach)
             narrow_phase.approach(self._contact_face, self._contact_w, self._contact_n, self._contact_s,
                                   self._contact_depth, self.local.triangles, self.local.velocities,
-                                  self._tool_pred_vel, self.n_tool, dt, ahead)
-            gain = self._ahead_gain
+                                  self._tool_vel, self._tool_vel_older, self.n_tool, dt, ahead, self._ahead_before)
         else:
             ahead.fill(0.0)
         if c is not None and c.active:
             rendering_kernels.compliance_response(
                 self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
-                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, self.n_segments, c.slot, c.W,
-                c.g, c.g_new, c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt, ahead, gain,
-                COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, c._act, c._Wa, c._D, c._J, c._work,
-                self._node_force, self._tissue_force, c.record[c.current], self._tip_stiffness, c.out)
+                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, c.slot, c.W,
+                c.g, c.g_new, c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt, ahead,
+                self._no_ahead, COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, self._fmag_wall, c._act,
+                c._Wa, c._D, c._J, c._work, self._node_force, self._tissue_force, c.record[c.current], c.out)
             c.record_steps[c.current] += 1
             max_depth, count, energy, iterations, c.band = c.out.tolist()
             c.iterations = int(iterations)
@@ -663,10 +674,34 @@ class ContactModel:
             c.record_steps[c.current] += 1
         return penalty_kernels.rigid_response(
             self._contact_face, self._contact_w, self._contact_n, self._contact_s, self._contact_depth,
-            self._contact_rate, self.local.triangles, self.local.vertices, self.n_tool, self.n_segments, self._law,
-            p.stiffness, p.damping, p.penalty_length, dt, ahead, gain, self._fmag, self._node_force, self._tissue_force,
-            record,
-            self._tip_stiffness)
+            self._contact_rate, self.local.triangles, self.local.vertices, self.n_tool, self._law, p.stiffness,
+            p.damping, p.penalty_length, ahead, self._no_ahead, self._fmag, self._fmag_wall, self._node_force,
+            self._tissue_force, record)
+
+    def _tip_response(self, pos1, tool1, dt) -> None:
+        """What the catheter's tip meets (penalty_kernels.tip_response): the law's force on it, its
+        stiffness, and the wall where it does not press (its clearance, narrow_phase.clearance, when
+        its node has no contact), so that its passive bend meets the wall in the step it reaches it."""
+        p = self.params
+        local = self.local
+        tip = self.n_tool - 1
+        self._tip_near[0] = np.inf
+        if self.n_segments and self._contact_face[tip] < 0:
+            narrow_phase.clearance(pos1, local.triangles, local.node_ptr, local.node_faces, tool1, tip, self.radius,
+                                   self._inside, self._entry_normal, self._blend_work, self._tip_near)
+        c = self.compliance
+        slot, W = (c.slot, c.W) if c is not None and c.active else (self._no_slot, self._no_W)
+        if self._contact_face[tip] >= 0 and self._fmag_wall[tip] > 0.0:
+            narrow_phase.normal_jacobian(pos1, local.triangles, local.node_ptr, local.node_faces, tool1, tip,
+                                         self.radius + self._band, self._inside, self._entry_normal,
+                                         NORMAL_JACOBIAN_STEP, self._blend_work, self._tip_dn)
+        else:
+            self._tip_dn.fill(0.0)
+        penalty_kernels.tip_response(
+            self._fmag_wall, self._contact_face, self._contact_w, self._contact_n, self._contact_s,
+            self._contact_depth, self._contact_rate, self._contact_point, tool1, local.triangles, slot, W, self.n_tool,
+            self.n_segments, self._law, p.stiffness, p.damping, p.penalty_length, dt, self._tip_near, self._tip_dn,
+            self._tip_force, self._tip_stiffness, self._tip_gap)
 
     def _name_patch(self, tool1) -> None:
         c = self.compliance
@@ -785,10 +820,7 @@ class ContactModel:
         """The bound outputs of this step: tool and tip force, and the patch."""
         tool_force, tip_force, patch_nodes = self._outputs
         patch = self.compliance.patch if self.compliance is not None else self._no_patch
-        rendering_kernels.publish(node_force, tool_force, tip_force, patch, patch_nodes)
-        renderer = self._renderer
-        if renderer is not None and renderer.force_limited:   # the tip keeps the physical force (ContactOutputs)
-            tip_force[...] = renderer.limiter.report[REQUESTED_TIP]
+        rendering_kernels.publish(node_force, self._tip_force, tool_force, tip_force, patch, patch_nodes)
 
     @property
     def patch_count(self) -> int:

@@ -320,6 +320,55 @@ def _capsule(sgi, n_tool, s, excess, p0, p1, tool_vel, radius, band, pos, vel, t
 
 
 @njit(cache=True)
+def clearance(pos, tri, node_ptr, node_faces, tool, i, radius, inside, entry_normal, work, out):
+    """Node i's sphere's clearance to the wall where it does not touch it: out (4,) = (gap, normal)
+    with gap = sd - radius >= 0 (m) and the contact normal the node would meet there (blended as a
+    contact's); gap = inf when the node overlaps the wall or no candidate face is near enough to
+    know (the broad phase's reach, as `proximity` decides)."""
+    out[0] = np.inf
+    px = tool[i, 0]
+    py = tool[i, 1]
+    pz = tool[i, 2]
+    seen, best_e = _candidates(px, py, pz, pos, tri, node_faces, node_ptr[i], node_ptr[i + 1], inside[i],
+                               entry_normal[i, 0], entry_normal[i, 1], entry_normal[i, 2], work)
+    if best_e < 0:
+        return
+    gap = _signed_distance(px, py, pz, pos, tri, work, seen, best_e) - radius
+    if not gap >= 0.0:
+        return
+    out[1], out[2], out[3] = _blend_normal(work, seen, best_e, radius)
+    out[0] = gap
+
+
+@njit(cache=True)
+def normal_jacobian(pos, tri, node_ptr, node_faces, tool, i, reach, inside, entry_normal, h, work, out):
+    """out (3, 3) = d n / d p of node i's contact normal (blended as `proximity` blends it, faces
+    within ``reach`` = radius + band) by central differences of step h (m); zeros where a side has
+    no candidate face. The contact force f n turns with the node as it slides over the facets: its
+    geometric stiffness -f d n / d p, which the tip's stiffness must count: near a facet edge it
+    can be the whole of K across the normal, and a catheter tip pressed hard and rolled slides to
+    and fro every step without it."""
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = 0.0
+    for c in range(3):
+        for sign in (1.0, -1.0):
+            px = tool[i, 0] + (sign * h if c == 0 else 0.0)
+            py = tool[i, 1] + (sign * h if c == 1 else 0.0)
+            pz = tool[i, 2] + (sign * h if c == 2 else 0.0)
+            seen, best_e = _candidates(px, py, pz, pos, tri, node_faces, node_ptr[i], node_ptr[i + 1], inside[i],
+                                       entry_normal[i, 0], entry_normal[i, 1], entry_normal[i, 2], work)
+            if best_e < 0:
+                for r in range(3):
+                    out[r, c] = 0.0
+                break
+            nx, ny, nz = _blend_normal(work, seen, best_e, reach)
+            out[0, c] += sign * nx / (2.0 * h)
+            out[1, c] += sign * ny / (2.0 * h)
+            out[2, c] += sign * nz / (2.0 * h)
+
+
+@njit(cache=True)
 def _less_ends(k, sgi, s, contact_face, contact_depth, rate):
     """rate[k] (segment sgi's contact at s) minus the ends' rates, weighted as the excess weights
     their depths, for the ends in contact."""
@@ -330,34 +379,83 @@ def _less_ends(k, sgi, s, contact_face, contact_depth, rate):
 
 
 @njit(cache=True)
-def approach(contact_face, contact_w, contact_n, contact_s, contact_depth, tri, vel, tool_vel, n_tool, hold, ahead):
+def approach(contact_face, contact_w, contact_n, contact_s, contact_depth, tri, vel, tool_vel, tool_vel_older, n_tool,
+             hold, ahead, ahead_before):
     """ahead (n_prim,): the depth change each contact's tool motion predicts over the next hold
-    interval, -(v_tool - v_surface) . n hold, with the tool's velocity `tool_vel` (the model's
-    prediction of it); a segment's less its ends', as its rate (0 without a contact)."""
+    interval, from its approach speed -(v_tool - v_surface) . n over the last step (tool_vel) and
+    the step before (tool_vel_older), limited: the slower of the two where they agree in sign, zero
+    where they do not (minmod). A steady approach is predicted exactly; a reversal, a period-2
+    oscillation (which a one-step prediction would feed back) or a start from rest predicts no
+    change; a jump the tool has just made is not carried into the next hold (their mean would carry
+    it into two, and the force would dip and rise again after a dead stop). A segment's is less its
+    ends' predicted positive depths (0 without a contact).
+
+    ahead_before (n_prim,): last step's prediction, in: it relaxes toward this step's (`_relaxed`)
+    instead of dropping to it while the tool keeps its direction; out: this step's."""
     for i in range(contact_face.shape[0]):
         ahead[i] = 0.0
         f = contact_face[i]
         if f < 0:
             continue
-        if i < n_tool:
-            tvx = tool_vel[i, 0]
-            tvy = tool_vel[i, 1]
-            tvz = tool_vel[i, 2]
-        else:
-            s = contact_s[i]
-            j = i - n_tool
-            tvx = (1.0 - s) * tool_vel[j, 0] + s * tool_vel[j + 1, 0]
-            tvy = (1.0 - s) * tool_vel[j, 1] + s * tool_vel[j + 1, 1]
-            tvz = (1.0 - s) * tool_vel[j, 2] + s * tool_vel[j + 1, 2]
-        vn = 0.0
+        vn1 = 0.0
+        vn0 = 0.0
         for d in range(3):
             surface = (contact_w[i, 0] * vel[tri[f, 0], d] + contact_w[i, 1] * vel[tri[f, 1], d]
                        + contact_w[i, 2] * vel[tri[f, 2], d])
-            vn += ((tvx if d == 0 else (tvy if d == 1 else tvz)) - surface) * contact_n[i, d]
-        ahead[i] = -vn * hold
+            if i < n_tool:
+                t1 = tool_vel[i, d]
+                t0 = tool_vel_older[i, d]
+            else:
+                s = contact_s[i]
+                j = i - n_tool
+                t1 = (1.0 - s) * tool_vel[j, d] + s * tool_vel[j + 1, d]
+                t0 = (1.0 - s) * tool_vel_older[j, d] + s * tool_vel_older[j + 1, d]
+            vn1 += (t1 - surface) * contact_n[i, d]
+            vn0 += (t0 - surface) * contact_n[i, d]
+        if vn1 * vn0 > 0.0:
+            ahead[i] = -(vn1 if abs(vn1) < abs(vn0) else vn0) * hold
+        ahead[i] = _relaxed(ahead[i], ahead_before[i], -vn1 * hold)
+    # a segment's depth is its excess over its ends' positive depths: its predicted change is the
+    # point's less what its ends' positive depths are predicted to gain (an end about to touch takes
+    # over the segment's overlap near it; counting both gave a first touch twice the force)
     for i in range(n_tool, contact_face.shape[0]):
-        if contact_face[i] >= 0:
-            _less_ends(i, i - n_tool, contact_s[i], contact_face, contact_depth, ahead)
+        if contact_face[i] < 0:
+            continue
+        j = i - n_tool
+        s = contact_s[i]
+        for end, weight in ((j, 1.0 - s), (j + 1, s)):
+            if contact_face[end] >= 0:
+                d = contact_depth[end]
+                ahead[i] -= weight * (max(d + ahead[end], 0.0) - max(d, 0.0))
+    for i in range(contact_face.shape[0]):
+        ahead_before[i] = ahead[i]
+
+
+#: Fraction of the prediction a contact's hold may drop per step beyond what the tool's own motion
+#: in the step explains (`_relaxed`): after a dead stop the held force returns to the law within
+#: about 10 steps (0.75^10 = 6 %).
+PREDICTION_RELAX = 0.25
+
+
+@njit(cache=True)
+def _relaxed(target, before, moved):
+    """The prediction of a contact whose last step's was ``before`` and whose tool moved its depth
+    by ``moved`` in this step, given this step's limited prediction ``target``: ``target``, except
+    that while the tool keeps the direction ``before`` predicted and ``target`` is smaller, it may
+    drop by at most 2 |moved| + PREDICTION_RELAX |before|.
+
+    Why: the held force is the law's mean over the predicted depths, k (d + p / 2) for the linear
+    law, so a prediction that drops by more than twice the step's own motion turns the force back
+    against the motion: after a sharp deceleration (a dead stop, an impact) it would fall, and rise
+    again as the tool crept on. A prediction too large while the tool slows
+    does more work against it than it gets back (dissipative), and none while it rests; against the
+    motion (a reversal) it would hand energy back, so there it drops at once."""
+    if before == 0.0 or moved * before < 0.0 or target * before < 0.0 or abs(target) >= abs(before):
+        return target
+    allowed = 2.0 * abs(moved) + PREDICTION_RELAX * abs(before)
+    if abs(before) - abs(target) <= allowed:
+        return target
+    return before - allowed if before > 0.0 else before + allowed
 
 
 @njit(cache=True)

@@ -30,7 +30,7 @@ import math
 
 from numba import njit
 
-from .penalty_kernels import LAW_HUNT_CROSSLEY, distribute, penalty_magnitude, penalty_slopes, tip_stiffness
+from .penalty_kernels import LAW_HUNT_CROSSLEY, contact_compliance, distribute, penalty_magnitude, penalty_slopes
 
 #: Sweeps of the Gauss-Seidel fallback of the compliance solve (linear convergence; a few contacts).
 GAUSS_SEIDEL_SWEEPS = 500
@@ -407,24 +407,51 @@ def name_patch(pos, vertices, tri, contact_face, contact_point, tool, near_dist,
 
 
 @njit(cache=True)
+def port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_ahead, tri, slot, W, law, k,
+                b, d0, dt, fmag):
+    """The haptic port's held force of each contact against the yielding wall (fmag): the law's mean
+    over the depths the tool's predicted motion reaches from the solved depth, that motion shared
+    with the wall as by two springs in series: the wall gives way by w = a^T W a per newton (the
+    contact's own compliance), so the depth changes by ahead / (1 + s w) (s the law's slope). For a
+    lone contact of the linear law, k (d + ahead / 2) / (1 + k w): the mean of the series spring
+    over the tool's motion, which is what makes a tap on the yielding wall return what it took."""
+    for i in range(contact_face.shape[0]):
+        fmag[i] = 0.0
+        f = contact_face[i]
+        if f < 0:
+            continue
+        ahead = contact_ahead[i]
+        if ahead != 0.0 and W.shape[0] > 0:
+            # the slope the contact meets (about to touch: the law's at depth 0+)
+            s_delta, s_rate, _ = penalty_slopes(max(contact_depth[i], 1e-12), contact_rate[i], law, k, b, d0, 0.0)
+            w = contact_compliance(i, f, contact_w, contact_n, tri, slot, W)
+            s = s_delta + s_rate / dt
+            if s > 0.0 and w > 0.0:
+                ahead = ahead / (1.0 + s * w)
+        fmag[i] = penalty_magnitude(contact_depth[i], contact_rate[i], law, k, b, d0, ahead)
+
+
+@njit(cache=True)
 def compliance_response(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
-                        local_to_global, n_tool, n_segments, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt,
-                        contact_ahead, ahead_gain, max_iter, tol, fmag, work_i, Wa, D, J, work_f, node_force,
-                        tissue_force, force_sum, tip_k, out):
-    """The compliance model's response in one call (the 1 kHz path): `compliance_forces`, then
-    `penalty_kernels.distribute`, the tip's stiffness against the yielding wall into tip_k (3, 3)
-    (`penalty_kernels.tip_stiffness`), then the patch's new load g and displacement
+                        local_to_global, n_tool, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt,
+                        contact_ahead, no_ahead, max_iter, tol, fmag, fmag_wall, work_i, Wa, D, J, work_f,
+                        node_force, tissue_force, force_sum, out):
+    """The compliance model's response in one call (the 1 kHz path): `compliance_forces` (the wall
+    yields under the law's force, fmag_wall; no_ahead: zeros), the haptic port's force held over the
+    predicted depths against the solved wall (fmag, `port_forces`), `penalty_kernels.distribute`,
+    then the patch's new load g and displacement
     u = W (g - g_applied) (updated by the changed columns of g only: u is W (g - g_applied) to
     round-off).
     work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
     (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
     iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
-                                   contact_ahead, law, k, b, d0, dt, max_iter, tol, fmag, g_new, work_i, Wa, D, J,
+                                   no_ahead, law, k, b, d0, dt, max_iter, tol, fmag_wall, g_new, work_i, Wa, D, J,
                                    work_f[0], work_f[1], work_f[2])
-    max_depth, count, energy = distribute(fmag, contact_face, contact_w, contact_n, contact_s, contact_depth, tri,
-                                          local_to_global, n_tool, law, k, d0, node_force, tissue_force, force_sum)
-    tip_stiffness(fmag, contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri, slot, W,
-                  n_tool, n_segments, law, k, b, d0, dt, contact_ahead, ahead_gain, tip_k)
+    port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_ahead, tri, slot, W, law, k,
+                b, d0, dt, fmag)
+    max_depth, count, energy = distribute(fmag, fmag_wall, contact_face, contact_w, contact_n, contact_s,
+                                          contact_depth, tri, local_to_global, n_tool, law, k, d0, node_force,
+                                          tissue_force, force_sum)
     # u = W (g - g_applied), updated by the columns whose load changed (at most 9 per contact:
     # the contact faces' vertices; none while nothing touches the patch)
     n3 = g.shape[0]
@@ -442,17 +469,18 @@ def compliance_response(contact_face, contact_w, contact_n, contact_depth, conta
 
 
 @njit(cache=True)
-def publish(node_force, tool_force, tip_force, patch, patch_out):
+def publish(node_force, tip, tool_force, tip_force, patch, patch_out):
     """A step's outputs into the caller's arrays: the tool force summed point after point (the
-    order of ``node_force.sum(axis=0)``, so the same bits), the tip force (last point), and the
-    patch ids (``patch_out`` of any integer type; nothing when ``patch`` is empty)."""
+    order of ``node_force.sum(axis=0)``, so the same bits), the tip force (``tip``,
+    penalty_kernels.tip_response), and the patch ids (``patch_out`` of any integer type; nothing
+    when ``patch`` is empty)."""
     n = node_force.shape[0]
     for d in range(3):
         total = node_force[0, d]
         for i in range(1, n):
             total += node_force[i, d]
         tool_force[d] = total
-        tip_force[d] = node_force[n - 1, d]
+        tip_force[d] = tip[d]
     for i in range(patch.shape[0]):
         patch_out[i] = patch[i]
 
