@@ -218,6 +218,12 @@ TIP_LOOP_CASES = {
     # predicted depth change carrying a jump into two holds (0 -> 0.533 -> 0.493 -> 0.511 N)
     "taps": (10000.0, _tube([0.0, 0.1, 0.221, 0.338, 0.455, 0.572, 0.7],
                             [0.0753, 0.0753, 0.0855, 0.0753, 0.0855, 0.0753, 0.0753]), 0.7),
+    # taps at 150 mm/s: at each turn the tip jumped out of the wall while its segment still touched
+    # it, and the wall it was about to meet again was known only without that segment's force:
+    # 3.36 -> 1.33 -> 3.11 -> 1.00 -> 2.69 -> 0.68 N
+    "tap turns": (5000.0, _tube([0.0, 0.1, 0.38, 0.993, 1.07, 1.147, 1.224, 1.301, 1.4],
+                                [0.077, 0.077, 0.0790968, 0.0745046, 0.0860393, 0.0745046, 0.0860393, 0.0745046,
+                                 0.0745046]), 1.4),
     # rolled through a quarter turn while pressed: the bending plane crossed the force's
     # perpendicular and the regulator's hard sign flipped its command every step (70 mN at 500 Hz)
     "roll": (5000.0, _tube([0.0, 0.1, 0.659, 0.681, 2.108], [0.077, 0.077, 0.0853711, 0.0853711, 0.0853711],

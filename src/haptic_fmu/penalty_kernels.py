@@ -316,12 +316,12 @@ def _gradient(contact_point, contact_n, contact_s, tool, n_tool, i):
 
 @njit(cache=True)
 def tip_gap(contact_face, fmag, contact_n, contact_depth, tip, near, law, k, b, d0, dt, out, gap):
-    """The wall at a tip that does not press on it (its sphere clear of the wall, or in it with a
-    law that gives f <= 0; no force from its last segment): out (3, 3) = the stiffness s n n^T it
-    meets on pressing, s = s_delta + s_rate / dt at depth 0+ (as `tip_stiffness` counts it,
-    without the wall's yielding, which would only lower it), and gap (3,)
-    = g n, the clearance at which it would push, so that its force is F = -out (dx + gap) where that
-    pushes, zero elsewhere:
+    """The wall at a tip whose own sphere does not press on it (clear of the wall, or in it with a
+    law that gives f <= 0): adds to out (3, 3) (what its last segment's contact gives, if any) the
+    stiffness s n n^T the sphere meets on pressing, s = s_delta + s_rate / dt at depth 0+ (as
+    `tip_stiffness` counts it, without the wall's yielding, which would only lower it), and sets gap
+    (3,) so that out . gap = s g n, g the clearance at which the sphere would push: its force is
+    then -out (dx + gap) where that pushes, zero elsewhere (gap = g n without a segment's part):
     - the tip's sphere overlaps the wall but its law gives f <= 0 (a fast release, whose damping
       outweighs the depth): g = -f / s;
     - the tip is clear of the wall (within the narrow phase's band, or near = (clearance, normal)
@@ -330,16 +330,13 @@ def tip_gap(contact_face, fmag, contact_n, contact_depth, tip, near, law, k, b, 
 
     Why: the catheter bends its passive tip against that one-sided affine force, which it can only
     do when it knows the wall where the tip does not press on it. Without it, a tip released from
-    the wall (a fast retraction) springs back into it by a whole step's relaxation, is thrown out
-    again one step later, and touches again: the force alternates at 500 Hz."""
+    the wall (a fast retraction, a tap's turn) springs back into it by a whole step's relaxation, is
+    thrown out again one step later, and touches again: the force alternates at 500 Hz."""
     for r in range(3):
         gap[r] = 0.0
     f = contact_face[tip]
     if f >= 0 and fmag[tip] > 0.0 and contact_depth[tip] > 0.0:
         return      # pressing: tip_stiffness has it
-    for r in range(3):
-        for c in range(3):
-            out[r, c] = 0.0
     s_delta, s_rate, _ = penalty_slopes(1e-12, 0.0, law, k, b, d0, 0.0)
     s_eff = s_delta + s_rate / dt
     if s_eff <= 0.0:
@@ -358,9 +355,14 @@ def tip_gap(contact_face, fmag, contact_n, contact_depth, tip, near, law, k, b, 
         return
     n = (nx, ny, nz)
     for r in range(3):
-        gap[r] = g * n[r]
         for c in range(3):
-            out[r, c] = s_eff * n[r] * n[c]
+            out[r, c] += s_eff * n[r] * n[c]
+    along = 0.0     # n . out . n: the sphere's s plus what the segment adds along its normal
+    for r in range(3):
+        for c in range(3):
+            along += n[r] * out[r, c] * n[c]
+    for r in range(3):
+        gap[r] = s_eff * g / along * n[r]
 
 
 @njit(cache=True)
@@ -384,9 +386,8 @@ def tip_response(fmag_wall, contact_face, contact_w, contact_n, contact_s, conta
     segment's: the law at this step's depths and rates, against the yielding wall its solution,
     without the haptic hold's prediction); its stiffness (`tip_stiffness`, plus the geometric
     -f d n / d p of the node's normal turning as it slides, tip_dn from
-    `narrow_phase.normal_jacobian`); and, where the tip
-    does not press and its last segment pushes nothing, the wall it will meet (`tip_gap`, near
-    from `narrow_phase.clearance` when its node has no contact).
+    `narrow_phase.normal_jacobian`); and, where the tip's sphere does not press, the wall it will
+    meet (`tip_gap`, near from `narrow_phase.clearance` when its node has no contact).
 
     Why the law and not the held force: the hold's prediction is the haptic port's (the device holds
     the force over the next millisecond); it remembers the tool's last motion. The catheter bends
@@ -412,6 +413,6 @@ def tip_response(fmag_wall, contact_face, contact_w, contact_n, contact_s, conta
                 tip_k[r, c] -= fmag_wall[tip] * tip_dn[r, c]
     for r in range(3):
         gap[r] = 0.0
-    if n_segments < 1 or (contact_face[last] >= 0 and fmag_wall[last] > 0.0):
-        return      # a probe, or the segment before the tip presses: K has it
+    if n_segments < 1:
+        return      # a probe
     tip_gap(contact_face, fmag_wall, contact_n, contact_depth, tip, near, law, k, b, d0, dt, tip_k, gap)
