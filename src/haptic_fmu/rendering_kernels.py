@@ -14,9 +14,10 @@ moves by u = W (g - g_applied), so the depth of contact i changes by a_i . du an
 
 (depth_i measured against the wall predicted with the previous step's patch force g_prev). The
 wall's yielding this step also moves the surface: rate_i(f) = rate_i + (delta_i(f) - depth_i)/dt.
-The law's elastic part is held at its mean over the depth change the tool's own motion predicts
-for the hold interval, ahead_i (`narrow_phase.approach`, `penalty_kernels.elastic_mean`; all 0:
-the sampled law); the yielding is not extrapolated (it is this step's answer, not a motion that goes on).
+The wall yields under the law's force at the sampled depths (`compliance_response` passes ahead_i
+= 0); the haptic port holds the law's mean over the depth change the tool's own motion predicts
+for the hold interval from the solved depth (`port_forces`: the motion shared with the yielding
+wall as by two springs in series; `narrow_phase.approach`, `penalty_kernels.elastic_mean`).
 `compliance_forces` solves f_i = phi(delta_i(f), rate_i(f), ahead_i) (the penalty law phi) by semi-smooth
 Newton: the Jacobian is I + diag(phi_delta + phi_rate / dt) D on contacts that stay in contact
 (delta > 0), the identity elsewhere (f_i = 0). For the linear law on a fixed contact set one
