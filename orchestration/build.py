@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import datetime
 import hashlib
+import importlib.util
 import io
 import json
 import logging
@@ -39,6 +40,8 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from . import portable_runtime
+
 logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -47,7 +50,7 @@ LAYER = SRC / "fmi3_layer"
 DEFAULT_FMU_DIR = REPO_ROOT / "fmus"
 BUILD_DIR = REPO_ROOT / "build"
 PLATFORM = "x86_64-linux"
-LAYER_SOURCES = ("fmi3Functions.c", "python_embed.c", "python_embed.h")
+LAYER_SOURCES = ("fmi3Functions.c", "python_embed.c", "python_embed.h", "runtime_unpack.c", "runtime_unpack.h")
 RUNTIME_FILES = ("fmi3_runtime.py", "numba_cache.py", "state_format.py")
 
 
@@ -134,6 +137,7 @@ def layer_library(build_dir: Path = BUILD_DIR) -> Path:
     return _shared_library("fmi3_layer", "the FMUs' FMI layer", sources, lambda output: [
         "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fPIC", "-shared",
         "-fvisibility=hidden", f"-I{LAYER / 'include'}", str(LAYER / "fmi3Functions.c"), str(LAYER / "python_embed.c"),
+        str(LAYER / "runtime_unpack.c"),
         # -z nodelete: the embedded interpreter keeps pointers into the library (its callbacks) for the
         # life of the process, so an importer's dlclose must not unmap it (a second instantiation
         # through the same handle, e.g. FMPy after freeInstance, would jump into unmapped code)
@@ -168,24 +172,24 @@ def python_environment() -> dict:
 
 _DESCRIBE_SCRIPT = r"""
 import importlib, json, sys
-resources, package, declaration, runtime_dir, identifier, digest, date, out = sys.argv[1:9]
+resources, package, declaration, runtime_dir, identifier, digest, date, out, needs_tool = sys.argv[1:10]
 sys.path.insert(0, resources)
 sys.path.insert(0, runtime_dir)
 import fmi3_runtime
 module_name, _, attribute = declaration.partition(":")
 decl = getattr(importlib.import_module(package + "." + module_name), attribute)
 token = fmi3_runtime.instantiation_token(decl, digest)
-xml = fmi3_runtime.model_description(decl, identifier, token, date)
+xml = fmi3_runtime.model_description(decl, identifier, token, date, needs_tool == "1")
 open(out, "w", encoding="utf-8").write(xml)
 print(json.dumps({"token": token, "model_name": decl.model_name, "description": decl.description}))
 """
 
 
-def _describe(spec: FmuSpec, resources: Path, digest: str, out: Path) -> dict:
+def _describe(spec: FmuSpec, resources: Path, digest: str, out: Path, needs_tool: bool) -> dict:
     """Write modelDescription.xml from the declaration in a fresh interpreter; return its token."""
     date = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
     proc = subprocess.run([sys.executable, "-c", _DESCRIBE_SCRIPT, str(resources), spec.package, spec.declaration,
-                           str(LAYER), spec.model_identifier, digest, date, str(out)],
+                           str(LAYER), spec.model_identifier, digest, date, str(out), "1" if needs_tool else "0"],
                           capture_output=True, text=True)
     if proc.returncode != 0:
         raise BuildError(f"{spec.model_identifier}: reading the declaration {spec.package}.{spec.declaration} "
@@ -208,14 +212,49 @@ def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
         raise BuildError(f"{name}: {package_dir} is not a package in this checkout")
     library = layer_library()
     environment = python_environment()
+    runtime = carried_runtime()
     dest = Path(dest)
     try:
-        return _assemble(spec, package_dir, library, environment, dest)
+        return _assemble(spec, package_dir, library, environment, runtime, dest)
     except OSError as exc:
         raise unwritable(f"building {name}.fmu", exc, dest) from None
 
 
-def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict, dest: Path) -> Path:
+@dataclass(frozen=True)
+class CarriedRuntime:
+    """The Python runtime every FMU carries (portable_runtime.py): its archive and its digest."""
+
+    archive: Path
+    digest: str
+
+
+def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
+    """The runtime the FMUs carry, built and archived once per environment; None (with a warning
+    saying why) when this Python cannot be carried: the FMUs then need the build's Python."""
+    try:
+        folder = portable_runtime.build_runtime(build_dir, SRC)
+    except portable_runtime.RuntimeUnavailable as exc:
+        logger.warning("the FMUs will carry no Python runtime and run only where this environment is: %s", exc)
+        return None
+    except OSError as exc:
+        raise unwritable("building the FMUs' Python runtime", exc, build_dir) from None
+    archive = folder.with_suffix(".zip")
+    if not archive.exists():
+        partial = archive.with_name(archive.name + f".{os.getpid()}.partial")
+        try:
+            with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as out:
+                for path in sorted(folder.rglob("*")):
+                    if path.is_file():
+                        out.write(path, path.relative_to(folder).as_posix())
+            partial.replace(archive)
+        except OSError as exc:
+            partial.unlink(missing_ok=True)
+            raise unwritable("archiving the FMUs' Python runtime", exc, build_dir) from None
+    return CarriedRuntime(archive, folder.name.partition("-")[2])
+
+
+def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict,
+              runtime: CarriedRuntime | None, dest: Path) -> Path:
     """Put the FMU together in a temporary folder and move its archive into ``dest``."""
     name = spec.model_identifier
     dest.mkdir(parents=True, exist_ok=True)
@@ -230,7 +269,7 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
         for file in RUNTIME_FILES:
             shutil.copyfile(LAYER / file, resources / file)
         digest = _digest(sorted(package_copy.rglob("*.py")) + [LAYER / f for f in RUNTIME_FILES + LAYER_SOURCES])
-        description = _describe(spec, resources, digest, root / "modelDescription.xml")
+        description = _describe(spec, resources, digest, root / "modelDescription.xml", needs_tool=runtime is None)
         meta = {
             "model_identifier": name,
             "package": spec.package,
@@ -241,7 +280,10 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
             **environment,
         }
         (resources / "fmu.json").write_text(json.dumps(meta, indent=2))
-        (resources / "libpython.txt").write_text(environment["libpython"] + "\n")
+        if runtime is None:  # the build machine's Python, by path (python_embed.c)
+            (resources / "libpython.txt").write_text(f"{environment['libpython']}\n{environment['base_prefix']}\n")
+        else:
+            (resources / "runtime.id").write_text(runtime.digest + "\n")
         binaries = root / "binaries" / PLATFORM
         binaries.mkdir(parents=True)
         shutil.copyfile(library, binaries / f"{name}.so")
@@ -252,6 +294,9 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
             for path in sorted(root.rglob("*")):
                 if path.is_file():
                     archive.write(path, path.relative_to(root).as_posix())
+            if runtime is not None:  # compressed already: stored as it is
+                archive.write(runtime.archive, "resources/runtime.zip", zipfile.ZIP_STORED)
+                _write_carried_kernels(archive, spec)
         final = dest / f"{name}.fmu"
         partial.replace(final)  # an FMU in use by a running importer is never half-written
     logger.info("built %s", final)
@@ -305,7 +350,86 @@ def _add_build_data(spec: FmuSpec, package_copy: Path) -> None:
 def build_all(names: list[str] | None = None, dest: Path = DEFAULT_FMU_DIR) -> list[Path]:
     """Build the named FMUs (default: every FMU whose package exists) and return their paths."""
     names = names or available_fmus()
-    return [build_fmu(name, dest) for name in names]
+    built = [build_fmu(name, dest) for name in names]
+    add_carried_kernels(built)
+    return built
+
+
+#: Where the build compiles the kernels the FMUs carry (a numba cache for numba_cache.CARRIED_CPU).
+CARRIED_KERNELS = BUILD_DIR / "numba-carried"
+
+
+def _numba_cache_module():
+    """src/fmi3_layer/numba_cache.py (a resource of the FMUs, not a package of the project)."""
+    spec = importlib.util.spec_from_file_location("_aaa_cosim_build_numba_cache", LAYER / "numba_cache.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def kernel_cache_folders(spec: FmuSpec) -> list[str]:
+    """The names of the numba cache folders the kernels of ``spec``'s FMU load from (numba_cache:
+    one per source file and version of the package, under the name the FMU imports it by)."""
+    cache = _numba_cache_module()
+    package_dir = Path(spec.source_root) / spec.package
+    digest = cache.package_digest(package_dir)
+    return sorted(cache.cache_folder_name(f"{spec.model_identifier}_{spec.package}", digest, path)
+                  for path in package_dir.rglob("*.py"))
+
+
+def _carried_kernel_folders(spec: FmuSpec, root: Path) -> list[Path]:
+    """The folders of the carried-kernel cache ``root`` that ``spec``'s FMU loads."""
+    return [root / name for name in kernel_cache_folders(spec) if (root / name).is_dir()]
+
+
+def _write_carried_kernels(archive: zipfile.ZipFile, spec: FmuSpec) -> bool:
+    """Add to the FMU being written the carried kernels of its package compiled before; False when
+    there are none for this version of its sources (add_carried_kernels compiles them)."""
+    folders = _carried_kernel_folders(spec, CARRIED_KERNELS) if CARRIED_KERNELS.is_dir() else []
+    for folder in folders:
+        for file in sorted(folder.iterdir()):
+            archive.write(file, f"resources/numba_cache/{folder.name}/{file.name}")
+    return bool(folders)
+
+
+def add_carried_kernels(fmus: list[Path], quiet: bool = False) -> None:
+    """Put into each of the project's FMUs that carries a runtime the kernels compiled for any
+    x86-64 CPU (resources/numba_cache): a first load on another machine then loads them instead
+    of compiling (Contact: ~30 s). They are compiled by running the default scene once with those
+    FMUs, once per version of the sources (the cache is content-addressed, build/numba-carried);
+    an FMU built after that has them already (_write_carried_kernels)."""
+    specs = {spec.model_identifier: spec for spec in FMU_SPECS.values()}
+    fmus = [f for f in fmus if f.stem in specs and _entries(f, "resources/runtime.id")
+            and not _entries(f, "resources/numba_cache/")]
+    if not fmus:
+        return
+    if any(not _carried_kernel_folders(specs[f.stem], CARRIED_KERNELS) for f in fmus):
+        if not quiet:
+            print("compiling the kernels the FMUs carry (once per source version) ...", flush=True)
+        code = "import sys; from orchestration.build import _warm_run; sys.exit(_warm_run(sys.argv[1]))"
+        env = {**os.environ, "NUMBA_CPU_NAME": "generic", "AAA_COSIM_NUMBA_CACHE": str(CARRIED_KERNELS)}
+        env.pop("NUMBA_CPU_FEATURES", None)
+        result = subprocess.run([sys.executable, "-c", code, str(fmus[0].parent)], cwd=str(REPO_ROOT), env=env,
+                                capture_output=True, text=True)
+        if result.returncode != 0:
+            logger.warning("compiling the kernels the FMUs carry failed (their first load elsewhere compiles them): %s",
+                           (result.stderr or result.stdout).strip()[-2000:])
+            return
+    for fmu in fmus:
+        partial = fmu.with_name(f".{fmu.name}.kernels.partial")
+        shutil.copyfile(fmu, partial)
+        with zipfile.ZipFile(partial, "a", zipfile.ZIP_DEFLATED) as archive:
+            added = _write_carried_kernels(archive, specs[fmu.stem])
+        if added:
+            partial.replace(fmu)
+        else:
+            partial.unlink()
+
+
+def _entries(fmu: Path, prefix: str) -> bool:
+    """Whether the archive ``fmu`` holds an entry whose name starts with ``prefix``."""
+    with zipfile.ZipFile(fmu) as archive:
+        return any(name.startswith(prefix) for name in archive.namelist())
 
 
 def fmu_is_stale(name: str, dest: Path = DEFAULT_FMU_DIR) -> bool:
@@ -331,6 +455,7 @@ def ensure_fmus_built(quiet: bool = False) -> None:
             except BuildError as exc:
                 raise BuildError(f"fmus/{name}.fmu is missing or older than its sources and cannot be built: "
                                  f"{exc}") from None
+    add_carried_kernels(sorted(DEFAULT_FMU_DIR.glob("*.fmu")), quiet=quiet)
     try:  # the master's compiled loop, so that the first run does not compile it while it is timed
         compiled_loop_library()
     except BuildError as exc:
@@ -368,9 +493,8 @@ def _current_cache_folders(root: Path) -> list[Path]:
     """The folders of the numba cache that the current sources' kernels load from. numba_cache
     names each after a source file's content (the name ends in "-" and the first 24 hex digits of
     its SHA-256), so a folder of an older source is never read again, and is not looked at here."""
-    digests = {hashlib.sha256(path.read_bytes()).hexdigest()[:24]
-               for spec in FMU_SPECS.values() for path in (Path(spec.source_root) / spec.package).rglob("*.py")}
-    return sorted(folder for folder in root.iterdir() if folder.is_dir() and folder.name.rpartition("-")[2] in digests)
+    names = {name for spec in FMU_SPECS.values() for name in kernel_cache_folders(spec)}
+    return sorted(folder for folder in root.iterdir() if folder.is_dir() and folder.name in names)
 
 
 def _pickle_problem(data: bytes, count: int) -> str | None:
@@ -459,8 +583,9 @@ def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
     return True
 
 
-def _warm_run() -> int:
-    """The warm-up itself (in a fresh interpreter): the whole default scene, every FMU in this process.
+def _warm_run(fmu_dir: str | None = None) -> int:
+    """The warm-up itself (in a fresh interpreter): the whole default scene, every FMU in this process
+    (those of ``fmu_dir`` when given, else the scene's).
 
     Some kernels first run late (the non-linear ETMM tensors once the wall strains past their
     threshold, about 0.7 s after the first contact), so a shorter run leaves them to the user's.
@@ -468,8 +593,15 @@ def _warm_run() -> int:
     from .master import run_scene
     from .scene import load_scene
 
-    scene = load_scene("aaa_endovascular")
+    scene_file = REPO_ROOT / "scenes" / "aaa_endovascular.toml"
     with tempfile.TemporaryDirectory(prefix="aaa_cosim_warm_") as tmp:
+        if fmu_dir is not None:  # FMU paths resolve next to the scene file first: a copy beside those FMUs
+            scene_file = Path(shutil.copy(scene_file, Path(fmu_dir) / f".warm-{os.getpid()}.toml"))
+        try:
+            scene = load_scene(scene_file)
+        finally:
+            if fmu_dir is not None:
+                scene_file.unlink()
         summary, _ = run_scene(scene, tmp, hosting="in-process", progress=False, plots=False, vtu=False)
     if summary["status"] != "completed":
         print(summary["error"], file=sys.stderr)

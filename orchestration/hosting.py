@@ -143,7 +143,8 @@ class InProcessFmu:
         description = self.description
         self._unzip_dir = tempfile.mkdtemp(prefix=f"fmu_{self.name}_")
         try:
-            extract(str(description.path), self._unzip_dir)
+            # the runtime an FMU carries is for importers without this Python (python_embed.h)
+            extract(str(description.path), self._unzip_dir, include=lambda name: name != "resources/runtime.zip")
             # checked before it is loaded (Fmi3Library): a truncated binary would kill this process
             self._library = Fmi3Library.from_extracted(self._unzip_dir, description.model_identifier,
                                                        required_functions(self.ports))

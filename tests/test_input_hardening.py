@@ -120,11 +120,7 @@ def test_unwritable_fmu_folder_is_a_build_error_naming_it(tmp_path):
 
 def test_damaged_numba_cache_names_the_folder_to_delete(tmp_path, monkeypatch):
     spec = next(iter(build.FMU_SPECS.values()))
-    source = next((Path(spec.source_root) / spec.package).rglob("*.py"))
-    import hashlib
-
-    digest = hashlib.sha256(source.read_bytes()).hexdigest()[:24]
-    folder = tmp_path / f"{source.stem}-{digest}"
+    folder = tmp_path / build.kernel_cache_folders(spec)[0]  # a folder the FMU's kernels load from
     folder.mkdir()
     assert build.numba_cache_damage(tmp_path) is None
     (folder / "kernel.nbi").write_bytes(b"\x80\x04\x95\x10\x00")  # a pickle cut short

@@ -141,8 +141,10 @@ def instantiation_token(declaration, source_digest: str) -> str:
     return "{%s-%s-%s-%s-%s}" % (digest[:8], digest[8:12], digest[12:16], digest[16:20], digest[20:32])
 
 
-def model_description(declaration, model_identifier: str, token: str, generation_date: str) -> str:
-    """modelDescription.xml of an FMU declared by ``declaration`` (see declare.py)."""
+def model_description(declaration, model_identifier: str, token: str, generation_date: str,
+                      needs_execution_tool: bool = False) -> str:
+    """modelDescription.xml of an FMU declared by ``declaration`` (see declare.py);
+    ``needs_execution_tool``: the FMU carries no Python runtime and needs one installed."""
     from_decl = declaration.all_variables()
     by_name = {v.name: v for v in from_decl}
     refs = {v.name: vr for vr, v in enumerate(from_decl)}
@@ -157,7 +159,8 @@ def model_description(declaration, model_identifier: str, token: str, generation
         '  <CoSimulation modelIdentifier=%s canHandleVariableCommunicationStepSize="false" '
         'fixedInternalStepSize="%r" canGetAndSetFMUState="true" canSerializeFMUState="true" '
         'canBeInstantiatedOnlyOncePerProcess="false" hasEventMode="false" providesIntermediateUpdate="false" '
-        'mightReturnEarlyFromDoStep="false"/>' % (quoteattr(model_identifier), float(declaration.internal_step)),
+        'mightReturnEarlyFromDoStep="false" needsExecutionTool="%s"/>'
+        % (quoteattr(model_identifier), float(declaration.internal_step), str(needs_execution_tool).lower()),
     ]
     if units:
         lines.append("  <UnitDefinitions>")
@@ -771,6 +774,10 @@ class RuntimeInstance:
 
 
 # ---- instantiation ------------------------------------------------------------------------------------
+#: sys._aaa_cosim_embedded of an interpreter the FMI layer started from the runtime the FMU carries
+#: (PYTHON_STARTED_CARRIED in python_embed.h)
+CARRIED_RUNTIME = 2
+
 _routers: dict[str, _Router] = {}
 _codecs: dict[str, object] = {}
 
@@ -784,6 +791,8 @@ def _load_package(resources: Path, unique: str, package: str, token: str):
     cache_spec = importlib.util.spec_from_file_location(unique + "__numba_cache", resources / "numba_cache.py")
     cache = importlib.util.module_from_spec(cache_spec)
     cache_spec.loader.exec_module(cache)
+    if getattr(sys, "_aaa_cosim_embedded", 0) == CARRIED_RUNTIME:
+        cache.use_carried_kernels(resources)
     cache.enable_stable_numba_cache(package_dir, unique)
     spec = importlib.util.spec_from_file_location(unique, package_dir / "__init__.py",
                                                   submodule_search_locations=[str(package_dir)])

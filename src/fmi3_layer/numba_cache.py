@@ -11,6 +11,40 @@ import os
 from pathlib import Path
 
 
+#: The CPU the kernels an FMU carries are compiled for: any x86-64, so that they load on every
+#: machine (numba keys its cache by CPU) and give the same bits everywhere.
+CARRIED_CPU = "generic"
+
+
+def use_carried_kernels(resources) -> None:
+    """In the runtime an FMU carries: compile for CARRIED_CPU, and use the kernels the build
+    compiled (``resources/numba_cache``) unless ``$AAA_COSIM_NUMBA_CACHE`` names another cache.
+    Must run before numba is imported; the interpreter is the FMU's own (a non-Python importer)."""
+    os.environ["NUMBA_CPU_NAME"] = CARRIED_CPU
+    carried = Path(resources) / "numba_cache"
+    if not os.environ.get("AAA_COSIM_NUMBA_CACHE") and carried.is_dir():
+        os.environ["AAA_COSIM_NUMBA_CACHE"] = str(carried)
+
+
+def package_digest(package_dir) -> str:
+    """The digest of every source file of a package.
+
+    A kernel's compiled code holds the kernels it calls from other modules of the package, and
+    numba checks only the caller's own file: keyed by one file, a changed callee in another file
+    would run stale. The package's digest covers every file a kernel can call.
+    """
+    package = hashlib.sha256()
+    for source in sorted(Path(package_dir).rglob("*.py")):
+        package.update(source.relative_to(package_dir).as_posix().encode() + b"\0" + source.read_bytes())
+    return package.hexdigest()
+
+
+def cache_folder_name(module_name: str, digest_of_package: str, py_file) -> str:
+    """The cache folder of the kernels of ``py_file`` (one folder per file and package version)."""
+    digest = hashlib.sha256(digest_of_package.encode() + Path(py_file).read_bytes()).hexdigest()[:24]
+    return f"{module_name}-{Path(py_file).stem}-{digest}"
+
+
 def enable_stable_numba_cache(package_dir, module_name: str) -> None:
     """Let numba cache the kernels of an extracted FMU across loads.
 
@@ -33,20 +67,13 @@ def enable_stable_numba_cache(package_dir, module_name: str) -> None:
     if getattr(caching, marker, False):
         return
 
-    # A kernel's compiled code holds the kernels it calls from other modules of the package, and
-    # numba checks only the caller's own file: keyed by one file, a changed callee in another file
-    # would run stale. The package's digest covers every file a kernel can call.
-    package = hashlib.sha256()
-    for source in sorted(Path(package_dir).rglob("*.py")):
-        package.update(source.relative_to(package_dir).as_posix().encode() + b"\0" + source.read_bytes())
-    package_digest = package.hexdigest()
+    digest_of_package = package_digest(package_dir)
 
     class ContentAddressedLocator(caching._CacheLocator):
         def __init__(self, py_func, py_file):
-            digest = hashlib.sha256(package_digest.encode() + Path(py_file).read_bytes()).hexdigest()[:24]
-            self._digest = digest
+            self._path = root / cache_folder_name(module_name, digest_of_package, py_file)
+            self._digest = self._path.name.rpartition("-")[2]
             self._lineno = py_func.__code__.co_firstlineno
-            self._path = root / f"{module_name}-{Path(py_file).stem}-{digest}"
 
         def get_cache_path(self):
             return str(self._path)

@@ -3,9 +3,11 @@
  *
  * The FMU binary links to no libpython. In a Python importer (FMPy, the orchestrator) the
  * interpreter's symbols are already in the process and are used as they are; in any other
- * importer the library named by $AAA_COSIM_LIBPYTHON, or else the one recorded by the build in
- * resources/libpython.txt, is loaded with RTLD_GLOBAL (extension modules such as numpy's need its
- * symbols) and an interpreter is started. That interpreter is never finalized: finalizing an
+ * importer the library named by $AAA_COSIM_LIBPYTHON, or else the runtime the FMU carries in
+ * resources/runtime (orchestration/portable_runtime.py), or else the library a build without
+ * one recorded in resources/libpython.txt, is loaded with RTLD_GLOBAL (extension modules such as
+ * numpy's need its symbols) and an interpreter is started, its home set and the importer's
+ * Python environment variables ignored. That interpreter is never finalized: finalizing an
  * interpreter that has imported numba/numpy from a shared library at process exit is what crashed
  * the hosts of the pythonfmu3-based FMUs; the process exit reclaims it.
  */
@@ -51,9 +53,13 @@ typedef struct {
 
 extern PythonApi py;
 
+/* How python_ensure found the interpreter (`*started`): the importer's own, or one it started
+ * from another installation's library, or from the runtime the FMU carries. */
+enum { PYTHON_IMPORTERS = 0, PYTHON_STARTED = 1, PYTHON_STARTED_CARRIED = 2 };
+
 /* Make the interpreter usable from this thread's next PyGILState_Ensure. Returns 0 on success;
  * on failure writes a reason (naming what to set) into `reason`. `*started` tells whether this
- * call started the interpreter (a non-Python importer). */
+ * call started the interpreter (a non-Python importer), and from which library (the enum above). */
 int python_ensure(const char *resource_dir, int *started, char *reason, size_t reason_size);
 
 /* The pending Python exception as text ("TypeName: message"), cleared; the GIL must be held.
