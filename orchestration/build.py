@@ -50,7 +50,10 @@ LAYER = SRC / "fmi3_layer"
 DEFAULT_FMU_DIR = REPO_ROOT / "fmus"
 BUILD_DIR = REPO_ROOT / "build"
 PLATFORM = "x86_64-linux"
-LAYER_SOURCES = ("fmi3Functions.c", "python_embed.c", "python_embed.h", "runtime_unpack.c", "runtime_unpack.h")
+LAYER_SOURCES = ("fmi3Functions.c", "python_embed.c", "python_embed.h", "runtime_unpack.c", "runtime_unpack.h",
+                 "remote.c", "remote.h", "variables.h", "helper_main.c")
+#: The helper process an FMU starts where its importer's Python cannot run the model (remote.h).
+HELPER_EXECUTABLE = "aaa_cosim_helper"
 RUNTIME_FILES = ("fmi3_runtime.py", "numba_cache.py", "state_format.py")
 
 
@@ -137,11 +140,19 @@ def layer_library(build_dir: Path = BUILD_DIR) -> Path:
     return _shared_library("fmi3_layer", "the FMUs' FMI layer", sources, lambda output: [
         "-std=gnu11", "-O3", "-g", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fPIC", "-shared",
         "-fvisibility=hidden", f"-I{LAYER / 'include'}", str(LAYER / "fmi3Functions.c"), str(LAYER / "python_embed.c"),
-        str(LAYER / "runtime_unpack.c"),
+        str(LAYER / "runtime_unpack.c"), str(LAYER / "remote.c"),
         # -z nodelete: the embedded interpreter keeps pointers into the library (its callbacks) for the
         # life of the process, so an importer's dlclose must not unmap it (a second instantiation
         # through the same handle, e.g. FMPy after freeInstance, would jump into unmapped code)
         "-Wl,-z,nodelete", "-o", str(output), "-ldl", "-lpthread", "-lm"], build_dir)
+
+
+def helper_executable(build_dir: Path = BUILD_DIR) -> Path:
+    """Compile (once per source version) the helper process's executable (helper_main.c)."""
+    sources = [LAYER / name for name in LAYER_SOURCES] + sorted((LAYER / "include").glob("*.h"))
+    return _shared_library(HELPER_EXECUTABLE, "the FMUs' helper process", sources, lambda output: [
+        "-std=gnu11", "-O2", "-g", "-Wall", "-Wextra", f"-I{LAYER / 'include'}", str(LAYER / "helper_main.c"),
+        "-o", str(output), "-ldl"], build_dir)
 
 
 COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"
@@ -226,6 +237,7 @@ class CarriedRuntime:
 
     archive: Path
     digest: str
+    requirements: dict
 
 
 def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
@@ -250,7 +262,7 @@ def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
         except OSError as exc:
             partial.unlink(missing_ok=True)
             raise unwritable("archiving the FMUs' Python runtime", exc, build_dir) from None
-    return CarriedRuntime(archive, folder.name.partition("-")[2])
+    return CarriedRuntime(archive, folder.name.partition("-")[2], json.loads((folder / "requirements.json").read_text()))
 
 
 def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict,
@@ -278,6 +290,8 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
             # checked at instantiation: a modelDescription.xml changed after the build is refused
             "model_description_sha256": hashlib.sha256((root / "modelDescription.xml").read_bytes()).hexdigest(),
             **environment,
+            # what an importer's own Python needs to run the model in its process (else: a helper process)
+            "requirements": runtime.requirements if runtime is not None else {},
         }
         (resources / "fmu.json").write_text(json.dumps(meta, indent=2))
         if runtime is None:  # the build machine's Python, by path (python_embed.c)
@@ -287,6 +301,8 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
         binaries = root / "binaries" / PLATFORM
         binaries.mkdir(parents=True)
         shutil.copyfile(library, binaries / f"{name}.so")
+        if runtime is not None:  # importers extract without file modes: the layer sets the x bit itself
+            shutil.copy(helper_executable(), binaries / HELPER_EXECUTABLE)
         (root / "documentation").mkdir()
         (root / "documentation" / "index.html").write_text(_documentation(description, environment))
         partial = dest / f".{name}.fmu.partial"

@@ -139,6 +139,17 @@ def _carried_entries(probe: dict[str, list[str]]) -> dict[str, list[str] | None]
     return entries
 
 
+def requirements(entries: dict) -> dict[str, str]:
+    """{distribution: version} of the packages carried: what an importer's own Python must have, at
+    those versions, to run the model in its own process (the FMI layer asks it, remote.h)."""
+    owners = importlib.metadata.packages_distributions()
+    found = {}
+    for name in entries:
+        for distribution in owners.get(name.removesuffix(".py"), []):
+            found[distribution] = importlib.metadata.version(distribution)
+    return dict(sorted(found.items()))
+
+
 def runtime_digest(entries: dict) -> str:
     """What a runtime is made of: the interpreter, the entries carried and their distributions' versions."""
     versions = sorted(f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions())
@@ -242,6 +253,7 @@ def build_runtime(build_dir: Path, source_root: Path) -> Path:
     lines += [f"preload deps/{soname} {soname}" for soname in _dependency_order(needed)]
     lines += [f"libpython lib/{library.name}"]
     (partial / "manifest.txt").write_text("\n".join(lines) + "\n")
+    (partial / "requirements.json").write_text(json.dumps(requirements(entries), indent=2))
     shutil.rmtree(folder, ignore_errors=True)
     partial.rename(folder)
     for older in Path(build_dir).glob("runtime-*"):  # of other environments or versions: never read again

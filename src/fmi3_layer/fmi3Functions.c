@@ -31,6 +31,9 @@
 
 #include "fmi3Functions.h"
 #include "python_embed.h"
+#include "remote.h"
+#include "runtime_unpack.h"
+#include "variables.h"
 
 /* ---- modes and the table of legal calls ----------------------------------------------------- */
 typedef enum {
@@ -77,11 +80,6 @@ static const char *mode_name(int mode) {
 }
 
 /* ---- the variable table ------------------------------------------------------------------------ */
-/* Type, causality and variability codes: the same numbers in fmi3_runtime.py (TYPE_CODES, ...). */
-enum { T_FLOAT64 = 1, T_FLOAT32, T_INT8, T_UINT8, T_INT16, T_UINT16, T_INT32, T_UINT32, T_INT64, T_UINT64,
-       T_BOOLEAN, T_STRING, T_BINARY };
-enum { C_PARAMETER = 1, C_CALCULATED_PARAMETER, C_STRUCTURAL_PARAMETER, C_INPUT, C_OUTPUT, C_LOCAL, C_INDEPENDENT };
-enum { V_CONSTANT = 1, V_FIXED, V_TUNABLE, V_DISCRETE, V_CONTINUOUS };
 
 static const char *type_name(int type) {
     static const char *names[] = {"?", "Float64", "Float32", "Int8", "UInt8", "Int16", "UInt16", "Int32",
@@ -106,6 +104,7 @@ typedef struct {
 } Variable;
 
 typedef struct {
+    uint32_t kind;        /* INSTANCE_LOCAL (remote.h: a remote instance starts with INSTANCE_REMOTE) */
     char *instance_name;
     fmi3InstanceEnvironment environment;
     fmi3LogMessageCallback logger;
@@ -166,6 +165,7 @@ static int allowed(Instance *inst, int modes, const char *function) {
 }
 
 static fmi3Status not_supported(fmi3Instance instance, const char *function, const char *why) {
+    if (remote_is(instance)) return remote_not_supported(instance, function, why);
     Instance *inst = (Instance *)instance;
     if (inst) log_message(inst, fmi3Error, "%s: not supported by this FMU (%s)", function, why);
     return fmi3Error;
@@ -291,6 +291,25 @@ static const char BOOTSTRAP[] =
     "            raise\n"
     "    return module.instantiate(resources, model_identifier, token, *args)\n";
 
+/* Whether the importer's own Python can host the model: "" when it has the Python version and the
+ * packages, at the versions, that the FMU was built with (resources/fmu.json), else why not. */
+static const char HOSTABLE[] =
+    "def _aaa_fmi3_hostable(resources):\n"
+    "    import importlib.metadata, json, pathlib, sys\n"
+    "    meta = json.loads((pathlib.Path(resources) / 'fmu.json').read_text())\n"
+    "    version = '%d.%d' % sys.version_info[:2]\n"
+    "    if version != meta.get('python_version'):\n"
+    "        return f\"the importer runs Python {version}, the FMU's model Python {meta.get('python_version')}\"\n"
+    "    other = []\n"
+    "    for name, wanted in sorted(meta.get('requirements', {}).items()):\n"
+    "        try:\n"
+    "            have = importlib.metadata.version(name)\n"
+    "        except importlib.metadata.PackageNotFoundError:\n"
+    "            have = None\n"
+    "        if have != wanted:\n"
+    "            other.append(f'{name} {have or \"missing\"} (the FMU needs {wanted})')\n"
+    "    return ('the importer\\'s Python has ' + ', '.join(other)) if other else ''\n";
+
 /* What a call ended by a KeyboardInterrupt logs (after the function's name). */
 #define INTERRUPTED_REASON                                                                                 \
     "interrupted: a KeyboardInterrupt (SIGINT, e.g. Ctrl-C) arrived while the FMU's Python code ran; the " \
@@ -397,6 +416,42 @@ static void free_instance_memory(Instance *inst) {
     free(inst);
 }
 
+/* Whether this instance's model runs in a helper process (remote.h): asked, or because the
+ * importer's own Python cannot host it (why, in `reason`). Only an FMU that carries a runtime can
+ * start one. */
+static int model_in_helper(const char *resources, char *reason, size_t reason_size) {
+    reason[0] = '\0';
+    const char *where = getenv(MODEL_PROCESS_VARIABLE);
+    if (where && strcmp(where, MODEL_PROCESS_HELPER) == 0) return 1;
+    if ((where && strcmp(where, MODEL_PROCESS_IMPORTER) == 0) || !runtime_carried(resources)) return 0;
+    int (*initialized)(void) = (int (*)(void))dlsym(RTLD_DEFAULT, "Py_IsInitialized");
+    if (!initialized || !initialized()) return 0; /* no Python here: the FMU starts its own in this process */
+    int started = 0;
+    if (python_ensure(resources, &started, reason, reason_size) != 0) return 1;
+    PyGILState_STATE gil = py.PyGILState_Ensure();
+    PyObject *globals = py.PyDict_New();
+    PyObject *builtins = py.PyImport_ImportModule("builtins");
+    int helper = 1;
+    snprintf(reason, reason_size, "the importer's Python could not be asked whether it has the model's packages");
+    if (globals && builtins && py.PyDict_SetItemString(globals, "__builtins__", builtins) == 0) {
+        PyObject *done = py.PyRun_StringFlags(HOSTABLE, 257 /* Py_file_input */, globals, globals, NULL);
+        PyObject *check = done ? py.PyDict_GetItemString(globals, "_aaa_fmi3_hostable") : NULL; /* borrowed */
+        PyObject *answer = check ? py.PyObject_CallFunction(check, "s", resources) : NULL;
+        const char *text = answer ? py.PyUnicode_AsUTF8(answer) : NULL;
+        if (text) {
+            helper = text[0] != '\0';
+            snprintf(reason, reason_size, "%s", text);
+        }
+        if (py.PyErr_Occurred()) py.PyErr_Clear();
+        if (answer) py.Py_DecRef(answer);
+        if (done) py.Py_DecRef(done);
+    }
+    if (builtins) py.Py_DecRef(builtins);
+    if (globals) py.Py_DecRef(globals);
+    py.PyGILState_Release(gil);
+    return helper;
+}
+
 fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String instantiationToken,
                                          fmi3String resourcePath, fmi3Boolean visible, fmi3Boolean loggingOn,
                                          fmi3Boolean eventModeUsed, fmi3Boolean earlyReturnAllowed,
@@ -408,6 +463,7 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
     (void)visible; (void)earlyReturnAllowed; (void)requiredIntermediateVariables; (void)intermediateUpdate;
     Instance *inst = calloc(1, sizeof(Instance));
     if (!inst) return NULL;
+    inst->kind = INSTANCE_LOCAL;
     inst->instance_name = strdup(instanceName ? instanceName : "");
     inst->environment = instanceEnvironment;
     inst->logger = logMessage;
@@ -437,6 +493,20 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
     while (length > 1 && resources[length - 1] == '/') resources[--length] = '\0';
 
     char reason[2048];
+    char binary[4096] = "";
+    {
+        Dl_info info;
+        if (dladdr((void *)&fmi3InstantiateCoSimulation, &info) && info.dli_fname)
+            snprintf(binary, sizeof binary, "%s", info.dli_fname);
+    }
+    if (model_in_helper(resources, reason, sizeof reason)) {
+        if (reason[0]) log_message(inst, fmi3OK, "fmi3InstantiateCoSimulation: the model runs in a helper process: %s",
+                                   reason);
+        fmi3Instance remote = remote_instantiate(binary, instanceName, instantiationToken, resourcePath, loggingOn,
+                                                 instanceEnvironment, logMessage);
+        free_instance_memory(inst);
+        return remote;
+    }
     int started = 0;
     if (python_ensure(resources, &started, reason, sizeof reason) != 0) {
         log_message(inst, fmi3Error, "fmi3InstantiateCoSimulation: %s", reason);
@@ -529,6 +599,10 @@ fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3Stri
 static void free_all_states(Instance *inst);
 
 void fmi3FreeInstance(fmi3Instance instance) {
+    if (remote_is(instance)) {
+        remote_free_instance(instance);
+        return;
+    }
     Instance *inst = (Instance *)instance;
     if (!inst) return;
     free_all_states(inst); /* the importer's states die with the instance */
@@ -548,6 +622,7 @@ const char *fmi3GetVersion(void) { return fmi3Version; }
 
 fmi3Status fmi3SetDebugLogging(fmi3Instance instance, fmi3Boolean loggingOn, size_t nCategories,
                                const fmi3String categories[]) {
+    if (remote_is(instance)) return remote_set_debug_logging(instance, loggingOn, nCategories, categories);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_SetDebugLogging, "fmi3SetDebugLogging")) return fmi3Error;
     unsigned chosen = 0;
@@ -573,6 +648,9 @@ fmi3Status fmi3SetDebugLogging(fmi3Instance instance, fmi3Boolean loggingOn, siz
 
 fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean toleranceDefined, fmi3Float64 tolerance,
                                        fmi3Float64 startTime, fmi3Boolean stopTimeDefined, fmi3Float64 stopTime) {
+    if (remote_is(instance))
+        return remote_enter_initialization_mode(instance, toleranceDefined, tolerance, startTime, stopTimeDefined,
+                                                stopTime);
     (void)toleranceDefined; (void)tolerance;
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_EnterInitializationMode, "fmi3EnterInitializationMode")) return fmi3Error;
@@ -588,6 +666,7 @@ fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean tolera
 }
 
 fmi3Status fmi3ExitInitializationMode(fmi3Instance instance) {
+    if (remote_is(instance)) return remote_simple(instance, REMOTE_OP_EXIT_INITIALIZATION);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_ExitInitializationMode, "fmi3ExitInitializationMode")) return fmi3Error;
     if (!inst->built && build_model(inst, "fmi3ExitInitializationMode") != fmi3OK) return fmi3Error;
@@ -600,6 +679,7 @@ fmi3Status fmi3EnterEventMode(fmi3Instance instance) {
 }
 
 fmi3Status fmi3Terminate(fmi3Instance instance) {
+    if (remote_is(instance)) return remote_simple(instance, REMOTE_OP_TERMINATE);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_Terminate, "fmi3Terminate")) return fmi3Error;
     PyObject *result = CALL_MODEL(inst, "fmi3Terminate", "terminate", NULL);
@@ -610,6 +690,7 @@ fmi3Status fmi3Terminate(fmi3Instance instance) {
 }
 
 fmi3Status fmi3Reset(fmi3Instance instance) {
+    if (remote_is(instance)) return remote_simple(instance, REMOTE_OP_RESET);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_Reset, "fmi3Reset")) return fmi3Error;
     PyObject *result = CALL_MODEL(inst, "fmi3Reset", "reset", NULL);
@@ -717,6 +798,7 @@ static int ensure_readable(Instance *inst, const char *function, const fmi3Value
 
 static fmi3Status get_values(fmi3Instance instance, const char *function, int type, const fmi3ValueReference vrs[],
                              size_t n_vrs, void *values, size_t n_values) {
+    if (remote_is(instance)) return remote_get(instance, type, vrs, n_vrs, values, n_values);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_Get, function)) return fmi3Error;
     if (!check_references(inst, function, type, vrs, n_vrs, values, n_values)) return fmi3Error;
@@ -788,6 +870,7 @@ static int check_limits(Instance *inst, const char *function, const fmi3ValueRef
 
 static fmi3Status set_values(fmi3Instance instance, const char *function, int type, const fmi3ValueReference vrs[],
                              size_t n_vrs, const void *values, size_t n_values) {
+    if (remote_is(instance)) return remote_set(instance, type, vrs, n_vrs, values, n_values);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_Set, function)) return fmi3Error;
     if (!check_references(inst, function, type, vrs, n_vrs, values, n_values)) return fmi3Error;
@@ -839,12 +922,14 @@ NUMERIC_ACCESSORS(Boolean, T_BOOLEAN)
 
 fmi3Status fmi3GetString(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                          fmi3String values[], size_t nValues) {
+    if (remote_is(instance)) return remote_get_string(instance, valueReferences, nValueReferences, values, nValues);
     /* the copy hands out the stored pointers, valid until the next fmi3SetString of the variable */
     return get_values(instance, "fmi3GetString", T_STRING, valueReferences, nValueReferences, values, nValues);
 }
 
 fmi3Status fmi3SetString(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                          const fmi3String values[], size_t nValues) {
+    if (remote_is(instance)) return remote_set_string(instance, valueReferences, nValueReferences, values, nValues);
     Instance *inst = (Instance *)instance;
     const char *function = "fmi3SetString";
     if (!inst || !allowed(inst, ALLOWED_Set, function)) return fmi3Error;
@@ -875,13 +960,15 @@ fmi3Status fmi3SetString(fmi3Instance instance, const fmi3ValueReference valueRe
 
 fmi3Status fmi3GetBinary(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                          size_t valueSizes[], fmi3Binary values[], size_t nValues) {
-    (void)valueSizes;
+    if (remote_is(instance))
+        return remote_get_binary(instance, valueReferences, nValueReferences, valueSizes, values, nValues);
     return get_values(instance, "fmi3GetBinary", T_BINARY, valueReferences, nValueReferences, values, nValues);
 }
 
 fmi3Status fmi3SetBinary(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                          const size_t valueSizes[], const fmi3Binary values[], size_t nValues) {
-    (void)valueSizes;
+    if (remote_is(instance))
+        return remote_set_binary(instance, valueReferences, nValueReferences, valueSizes, values, nValues);
     return set_values(instance, "fmi3SetBinary", T_BINARY, valueReferences, nValueReferences, values, nValues);
 }
 
@@ -899,6 +986,7 @@ fmi3Status fmi3SetClock(fmi3Instance instance, const fmi3ValueReference valueRef
 
 /* ---- configuration --------------------------------------------------------------------------------- */
 fmi3Status fmi3EnterConfigurationMode(fmi3Instance instance) {
+    if (remote_is(instance)) return remote_simple(instance, REMOTE_OP_ENTER_CONFIGURATION);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_EnterConfigurationMode, "fmi3EnterConfigurationMode")) return fmi3Error;
     inst->mode = M_CONFIGURATION;
@@ -906,6 +994,7 @@ fmi3Status fmi3EnterConfigurationMode(fmi3Instance instance) {
 }
 
 fmi3Status fmi3ExitConfigurationMode(fmi3Instance instance) {
+    if (remote_is(instance)) return remote_simple(instance, REMOTE_OP_EXIT_CONFIGURATION);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_ExitConfigurationMode, "fmi3ExitConfigurationMode")) return fmi3Error;
     /* arrays sized by structural parameters are allocated anew (and registered again) */
@@ -985,6 +1074,10 @@ static const Variable *non_finite_output(const Instance *inst, size_t *index) {
 fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoint, fmi3Float64 communicationStepSize,
                       fmi3Boolean noSetFMUStatePriorToCurrentPoint, fmi3Boolean *eventHandlingNeeded,
                       fmi3Boolean *terminateSimulation, fmi3Boolean *earlyReturn, fmi3Float64 *lastSuccessfulTime) {
+    if (remote_is(instance))
+        return remote_do_step(instance, currentCommunicationPoint, communicationStepSize,
+                              noSetFMUStatePriorToCurrentPoint, eventHandlingNeeded, terminateSimulation, earlyReturn,
+                              lastSuccessfulTime);
     (void)noSetFMUStatePriorToCurrentPoint;
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_DoStep, "fmi3DoStep")) return fmi3Error;
@@ -1187,6 +1280,7 @@ static void fill_state(Instance *inst, SavedState *saved, int mode, int built, u
 }
 
 fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
+    if (remote_is(instance)) return remote_get_state(instance, FMUState);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3GetFMUState")) return fmi3Error;
     if (!FMUState) {
@@ -1207,6 +1301,7 @@ fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
 }
 
 fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
+    if (remote_is(instance)) return remote_set_state(instance, FMUState);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3SetFMUState")) return fmi3Error;
     SavedState *saved = live_state(inst, "fmi3SetFMUState", FMUState);
@@ -1232,6 +1327,7 @@ fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
 }
 
 fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
+    if (remote_is(instance)) return remote_free_state(instance, FMUState);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3FreeFMUState")) return fmi3Error;
     if (!FMUState) return fmi3OK;
@@ -1273,6 +1369,7 @@ static PyObject *serialized_bytes(Instance *inst, const char *function, SavedSta
 }
 
 fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUState, size_t *size) {
+    if (remote_is(instance)) return remote_state_size(instance, FMUState, size);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3SerializedFMUStateSize")) return fmi3Error;
     SavedState *saved = live_state(inst, "fmi3SerializedFMUStateSize", FMUState);
@@ -1294,6 +1391,7 @@ fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUSta
 
 fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState, fmi3Byte serializedState[],
                                  size_t size) {
+    if (remote_is(instance)) return remote_serialize_state(instance, FMUState, serializedState, size);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3SerializeFMUState")) return fmi3Error;
     SavedState *saved = live_state(inst, "fmi3SerializeFMUState", FMUState);
@@ -1321,6 +1419,7 @@ fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState, f
 
 fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte serializedState[], size_t size,
                                    fmi3FMUState *FMUState) {
+    if (remote_is(instance)) return remote_deserialize_state(instance, serializedState, size, FMUState);
     Instance *inst = (Instance *)instance;
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3DeserializeFMUState")) return fmi3Error;
     if (!serializedState || !FMUState || size == 0 || size > (size_t)SSIZE_MAX) {
