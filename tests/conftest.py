@@ -54,6 +54,14 @@ def fmus(tissue_fmu, contact_fmu, catheter_fmu) -> dict[str, Path]:
     return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
 
 
+@pytest.fixture(params=["importer", "helper"])
+def model_process(request, monkeypatch) -> str:
+    """Where the FMUs' models run (src/fmi3_layer/remote.h): in the importer's process, or in the
+    helper process the FMU starts; set for this process and the processes a test starts."""
+    monkeypatch.setenv("AAA_COSIM_MODEL_PROCESS", request.param)
+    return request.param
+
+
 @pytest.fixture(scope="session")
 def c_host(tmp_path_factory) -> Path:
     """The non-Python importer tests/c_host/fmu_host.c, compiled once with the system C compiler."""

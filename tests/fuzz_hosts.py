@@ -67,8 +67,14 @@ class HostCrashed(AssertionError):
     """The host process died by a signal, exited early or hung during a case."""
 
 
+#: The suffix of a host kind whose FMU runs its model in the FMU's helper process ("c-helper"),
+#: not in the host's own process (src/fmi3_layer/remote.h).
+HELPER = "-helper"
+
+
 class ScriptHost:
-    """One FMU in a host process ("fmpy" or "c") that runs cases of commands."""
+    """One FMU in a host process ("fmpy" or "c"; "fmpy-helper", "c-helper": the model in the FMU's
+    helper process) that runs cases of commands."""
 
     def __init__(self, kind: str, fmu: Path, work: Path, c_host: Path | None = None, cases_per_process: int = 10,
                  call_timeout: float = 120.0):
@@ -81,13 +87,14 @@ class ScriptHost:
 
     def _start(self) -> None:
         self.work.mkdir(parents=True, exist_ok=True)
-        folder = self.work / f"{self.kind}{self.processes_started}"
-        if self.kind == "c":
+        folder = self.folder = self.work / f"{self.kind}{self.processes_started}"
+        if self.kind.removesuffix(HELPER) == "c":
             command = [str(self.c_host), "--serve", str(self.fmu), str(folder)]
             env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "LD_PRELOAD")}
         else:
             command = [sys.executable, str(Path(__file__).resolve()), str(self.fmu), str(folder)]
             env = dict(os.environ)
+        env["AAA_COSIM_MODEL_PROCESS"] = "helper" if self.kind.endswith(HELPER) else "importer"
         self.stderr_path = self.work / f"{self.kind}{self.processes_started}.stderr"
         self.process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                         stderr=open(self.stderr_path, "wb"), env=env, bufsize=0)
@@ -152,6 +159,8 @@ class ScriptHost:
             except (BrokenPipeError, subprocess.TimeoutExpired):
                 process.kill()
                 code = process.wait()
+            # the extracted FMU (the size of the FMU: its runtime is in it) is not needed any more
+            shutil.rmtree(self.folder, ignore_errors=True)
             if code != 0:
                 raise HostCrashed(f"the {self.kind} host exited with {code} at the end of its cases: "
                                   f"{self.stderr_path.read_text(errors='replace')[-2000:]}")

@@ -8,6 +8,7 @@ recorded at build time by itself (nothing preloaded, no environment variables). 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -16,6 +17,9 @@ import numpy as np
 import pytest
 
 from fmu_harness import fmu_instance
+
+# every test twice: the model in the importer's process, and in the FMU's helper process
+pytestmark = pytest.mark.usefixtures("model_process")
 
 RUNS = 30
 
@@ -38,8 +42,13 @@ def _arguments(name: str, fmu: Path, work: Path, state: bool = False) -> list[st
 
 
 def _run(c_host: Path, args: list[str]) -> subprocess.CompletedProcess:
+    """fmu_host with ``args`` (the .fmu, the folder it extracts into, ...); the folder is removed
+    afterwards (an extracted FMU is as large as the FMU: its runtime is in it)."""
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "LD_PRELOAD")}
-    return subprocess.run([str(c_host), *args], capture_output=True, text=True, timeout=300, env=env)
+    try:
+        return subprocess.run([str(c_host), *args], capture_output=True, text=True, timeout=300, env=env)
+    finally:
+        shutil.rmtree(args[1], ignore_errors=True)
 
 
 def _outputs(stdout: str) -> dict[str, np.ndarray]:

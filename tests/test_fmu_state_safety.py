@@ -76,6 +76,7 @@ def all_fmus(tissue_fmu, contact_fmu, catheter_fmu):
 
 
 @pytest.mark.parametrize("name", ["Catheter", "Contact", "Tissue"])
+@pytest.mark.usefixtures("model_process")
 def test_a_pickle_in_a_state_runs_nothing_and_is_refused(name, all_fmus, tmp_path):
     marker = tmp_path / "ran"
     evil = pickle.dumps(_Payload(marker))
@@ -160,6 +161,7 @@ def test_a_state_whose_sizes_contradict_its_structural_parameters_is_refused(all
 
 
 @pytest.mark.parametrize("name", ["Catheter", "Tissue"])
+@pytest.mark.usefixtures("model_process")
 def test_single_flipped_bytes_are_refused(name, all_fmus):
     rng = np.random.default_rng(33)
     with fmu_instance(all_fmus[name]) as fmu:
@@ -182,6 +184,7 @@ def _run_script(script: str, timeout: float = 300) -> subprocess.CompletedProces
 
 
 @pytest.mark.parametrize("name", ["Catheter", "Contact", "Tissue"])
+@pytest.mark.usefixtures("model_process")
 def test_freed_copied_foreign_and_misplaced_handles_are_refused_not_followed(name, all_fmus):
     """A copied handle freed twice, a freed state set, a pointer that is no state, and fmusim's
     fmi3FreeFMUState(instance, state): statuses and reasons, never a crash of the importer."""
@@ -286,6 +289,7 @@ def test_a_call_that_would_run_for_minutes_is_refused_with_the_limit(name, step,
 
 
 @pytest.mark.parametrize("name", ["Catheter", "Contact", "Tissue"])
+@pytest.mark.usefixtures("model_process")
 def test_instantiating_again_after_the_extraction_folder_was_deleted_is_refused_not_a_crash(name, all_fmus):
     """FMPy frees the library with the instance; the same slave instantiated again after its folder
     was deleted used to jump into the unmapped library (SIGSEGV)."""
@@ -310,6 +314,7 @@ def test_instantiating_again_after_the_extraction_folder_was_deleted_is_refused_
     assert "refused:" in result.stdout
 
 
+@pytest.mark.usefixtures("model_process")
 def test_serialized_states_restore_in_another_process_bit_identically(catheter_fmu, tmp_path):
     """The bytes are self-contained data: a fresh interpreter restores them and continues exactly."""
     with fmu_instance(catheter_fmu) as fmu:

@@ -1,5 +1,6 @@
 """Fuzzing FMI call sequences on the three FMUs, in fresh host processes: FMPy's low-level API and
-the C importer (tests/fuzz_hosts.py, tests/c_host/fmu_host.c --serve).
+the C importer (tests/fuzz_hosts.py, tests/c_host/fmu_host.c --serve), each with the model in the
+host's process and in the FMU's helper process (src/fmi3_layer/remote.h).
 
 Each case is a plain legal run of an FMU (PLAIN_RUNS: configuration, parameters, steps under
 inputs, outputs) with calls inserted that the FMU must refuse where they stand (the wrong mode, an
@@ -31,7 +32,8 @@ from hypothesis import strategies as st
 from fuzz_hosts import ERROR, OK, PLAIN_RUNS, WARNING, ScriptHost, get_command, ports, set_command
 
 FMUS = list(PLAIN_RUNS)
-KINDS = ["fmpy", "c"]
+#: the hosts, each with the model in its own process and in the FMU's helper process
+KINDS = ["fmpy", "c", "fmpy-helper", "c-helper"]
 
 
 @pytest.fixture(scope="module")
@@ -174,8 +176,9 @@ def plain_outputs(host, name, p):
 @pytest.mark.parametrize("name", FMUS)
 def test_plain_runs_give_the_same_numbers_in_fmpy_and_the_c_host(hosts, fmus, name):
     p = ports(fmus[name], PLAIN_RUNS[name].structural)
-    fmpy, c = (plain_outputs(hosts[(kind, name)], name, p) for kind in KINDS)
-    assert fmpy == c
+    fmpy, *others = (plain_outputs(hosts[(kind, name)], name, p) for kind in KINDS)
+    for kind, outputs in zip(KINDS[1:], others):
+        assert outputs == fmpy, kind
     assert any(x != 0.0 for values in fmpy for x in values)  # the run did something
 
 
