@@ -11,19 +11,26 @@ outputs (centerline 93 values, tip position, bend angle, command, advice, force 
 bend: 101 values) and the Boolean warning; the direct loop calls ``CatheterModel.step`` and copies
 the same outputs. Both push the catheter in while a tip force swings.
 
-The FMUs are called through their raw C functions (FMPy's ctypes bindings, the importer's own
-cost included) on preallocated numpy buffers; FMU and direct steps alternate in blocks in one process
-so that machine noise hits both alike, and each reports the median of its steps. The FMI cost is
-the difference of the medians; the last step's outputs must agree to the bit.
+Each FMU runs twice: with its model in this process (the importer's, as the orchestrator and
+FMPy in the project's environment run it) and in the FMU's helper process (as any importer whose
+Python lacks the model's packages runs it: src/fmi3_layer/remote.h; each FMI call a round trip
+over shared memory).
 
-Target (issue: the project's own FMI layer): FMI cost <= 10 us per step, from about 120 us with
-pythonfmu3 (the figure measured on this machine before the layer was replaced).
+The FMUs are called through their raw C functions (FMPy's ctypes bindings, the importer's own
+cost included) on preallocated numpy buffers; the two FMU instances and the direct steps alternate
+in blocks in one process so that machine noise hits all alike, and each reports the median of its
+steps. The FMI cost is the difference of the medians; the last step's outputs must agree to the bit.
+
+Targets: FMI cost <= 10 us per step with the model in the importer's process (from about 120 us
+with pythonfmu3, measured on this machine before the layer was replaced), <= 20 us per Contact
+step through the helper process.
 
 Run: .venv/bin/python benchmarks/bench_fmi_layer.py
 """
 from __future__ import annotations
 
 import ctypes
+import os
 import tempfile
 import time
 
@@ -56,10 +63,15 @@ def catheter_inputs(k: int) -> np.ndarray:
     return np.array([0.07 + 0.002 * t, 0.2 * np.sin(t), 0.4 * np.sin(3 * t), 0.1, 0.05 * np.cos(2 * t)])
 
 
-class Fmu:
-    """One FMU instance in Step Mode and its raw C functions (FMPy's ctypes bindings)."""
+#: where the model of each benchmarked instance runs (AAA_COSIM_MODEL_PROCESS, remote.h)
+PROCESSES = ("importer", "helper")
 
-    def __init__(self, name: str):
+
+class Fmu:
+    """One FMU instance in Step Mode and its raw C functions (FMPy's ctypes bindings), its model in
+    ``process`` (one of PROCESSES)."""
+
+    def __init__(self, name: str, process: str):
         if fmu_is_stale(name):
             build_fmu(name)
         from fmpy import extract, read_model_description
@@ -71,7 +83,15 @@ class Fmu:
         self._vr_type = fmi3ValueReference
         self.slave = FMU3Slave(guid=md.guid, unzipDirectory=extract(str(path), tempfile.mkdtemp()),
                                modelIdentifier=name, instanceName="bench")
-        self.slave.instantiate(loggingOn=False)
+        chosen = os.environ.get("AAA_COSIM_MODEL_PROCESS")
+        os.environ["AAA_COSIM_MODEL_PROCESS"] = process
+        try:
+            self.slave.instantiate(loggingOn=False)
+        finally:
+            if chosen is None:
+                os.environ.pop("AAA_COSIM_MODEL_PROCESS")
+            else:
+                os.environ["AAA_COSIM_MODEL_PROCESS"] = chosen
         self.slave.enterInitializationMode()
         self.slave.exitInitializationMode()
         self.f = self.slave._functions
@@ -93,36 +113,37 @@ def pointer(array: np.ndarray):
     return array.ctypes.data_as(ctypes.POINTER(ctype))
 
 
-def alternate(fmu_step, direct_step) -> tuple[np.ndarray, np.ndarray]:
-    """Times (us) of BLOCKS * BLOCK steps each, FMU and direct blocks alternating."""
-    fmu_times, direct_times = [], []
-    k_fmu = k_direct = 0
-    for block in range(2 * BLOCKS):
-        if block % 2 == 0:
-            for _ in range(BLOCK):
-                fmu_times.append(fmu_step(k_fmu))
-                k_fmu += 1
-        else:
-            for _ in range(BLOCK):
-                direct_times.append(direct_step(k_direct))
-                k_direct += 1
-    return np.array(fmu_times) / 1e3, np.array(direct_times) / 1e3
+def alternate(*steps) -> list[np.ndarray]:
+    """Times (us) of BLOCKS * BLOCK steps of each of ``steps`` (functions of the step number), in
+    blocks taking turns."""
+    times = [[] for _ in steps]
+    for block in range(BLOCKS * len(steps)):
+        which = block % len(steps)
+        start = len(times[which])
+        for k in range(start, start + BLOCK):
+            times[which].append(steps[which](k))
+    return [np.array(t) / 1e3 for t in times]
 
 
-def report(title: str, fmu_us: np.ndarray, direct_us: np.ndarray) -> float:
+def report(title: str, fmu_us: dict[str, np.ndarray], direct_us: np.ndarray, targets: dict[str, float]) -> dict:
     print(title)
-    print(f"  direct model step (+ output copies)   median {np.median(direct_us):7.1f} us   p99 "
+    print(f"  direct model step (+ output copies)            median {np.median(direct_us):7.1f} us   p99 "
           f"{np.percentile(direct_us, 99):7.1f} us")
-    print(f"  FMU step (set, fmi3DoStep, get)       median {np.median(fmu_us):7.1f} us   p99 "
-          f"{np.percentile(fmu_us, 99):7.1f} us")
-    cost = float(np.median(fmu_us) - np.median(direct_us))
-    print(f"  FMI layer cost per step (difference of the medians): {cost:.1f} us; FMU / direct = "
-          f"{np.median(fmu_us) / np.median(direct_us):.2f} (target <= 10 us)")
-    return cost
+    costs = {}
+    for process, times in fmu_us.items():
+        print(f"  FMU step, model in the {process + ' process':16s}  median {np.median(times):7.1f} us   p99 "
+              f"{np.percentile(times, 99):7.1f} us")
+        costs[process] = float(np.median(times) - np.median(direct_us))
+    for process, cost in costs.items():
+        target = f" (target <= {targets[process]:g} us)" if process in targets else ""
+        print(f"  FMI cost per step, model in the {process} process (difference of the medians): {cost:.1f} us; "
+              f"FMU / direct = {np.median(fmu_us[process]) / np.median(direct_us):.2f}{target}")
+    return costs
 
 
-def contact() -> float:
-    fmu = Fmu("Contact")
+def contact_fmu_step(process: str, paths: list[np.ndarray]):
+    """The FMU instance with its model in ``process``, its step function and its last outputs."""
+    fmu = Fmu("Contact", process)
     f, c = fmu.f, fmu.c
     set_f64, get_f64, get_i32, do_step = f["fmi3SetFloat64"], f["fmi3GetFloat64"], f["fmi3GetInt32"], f["fmi3DoStep"]
     scalar_names = ["tool_force", "tip_force", "penetration_depth", "contact_energy", "passivity_energy"]
@@ -131,14 +152,6 @@ def contact() -> float:
     tool, outputs, tissue_force, count = np.zeros(93), np.zeros(9), np.zeros(8064), np.zeros(1, np.int32)
     p_tool, p_out, p_force, p_count = pointer(tool), pointer(outputs), pointer(tissue_force), pointer(count)
     refs = fmu.step_refs
-
-    mesh = aaa_mesh()
-    nodes, triangles = mesh.surface()
-    model = ContactModel(triangles, len(nodes), 31, ContactParameters())
-    model.set_tissue_frame(0.0, mesh.points[nodes], np.zeros((len(nodes), 3)))
-    direct_out = np.zeros(9)
-    direct_force = np.zeros(8064)
-    paths = [catheter_path(k) for k in range(BLOCK * BLOCKS)]
     contacts = [0]
 
     def fmu_step(k):
@@ -151,9 +164,23 @@ def contact() -> float:
         get_i32(c, count_vr, 1, p_count, 1)
         elapsed = CLOCK() - t0
         if status != 0:
-            raise SystemExit(f"Contact: fmi3DoStep returned {status}")
+            raise SystemExit(f"Contact ({process} process): fmi3DoStep returned {status}")
         contacts[0] += int(count[0] > 0)
         return elapsed
+
+    return fmu, fmu_step, (outputs, tissue_force), contacts
+
+
+def contact() -> dict:
+
+    mesh = aaa_mesh()
+    nodes, triangles = mesh.surface()
+    model = ContactModel(triangles, len(nodes), 31, ContactParameters())
+    model.set_tissue_frame(0.0, mesh.points[nodes], np.zeros((len(nodes), 3)))
+    direct_out = np.zeros(9)
+    direct_force = np.zeros(8064)
+    paths = [catheter_path(k) for k in range(BLOCK * BLOCKS)]
+    instances = {process: contact_fmu_step(process, paths) for process in PROCESSES}
 
     def direct_step(k):
         positions = paths[k]
@@ -164,16 +191,20 @@ def contact() -> float:
         direct_force[:] = out.tissue_contact_force.ravel()
         return CLOCK() - t0
 
-    fmu_us, direct_us = alternate(fmu_step, direct_step)
-    if not (np.array_equal(outputs, direct_out) and np.array_equal(tissue_force, direct_force)):
-        raise SystemExit("Contact: the FMU and the direct model disagree on the last step")
-    fmu.close()
+    *fmu_us, direct_us = alternate(*(instances[p][1] for p in PROCESSES), direct_step)
+    for process, (fmu, _, (outputs, tissue_force), contacts) in instances.items():
+        if not (np.array_equal(outputs, direct_out) and np.array_equal(tissue_force, direct_force)):
+            raise SystemExit(f"Contact: the FMU ({process} process) and the direct model disagree on the last step")
+        fmu.close()
+    contacts = instances["importer"][3][0]
     return report(f"Contact step, {BLOCK * BLOCKS} steps each, alternating blocks of {BLOCK}; steps with contact: "
-                  f"{contacts[0] / len(fmu_us):.0%}", fmu_us, direct_us)
+                  f"{contacts / len(direct_us):.0%}", dict(zip(PROCESSES, fmu_us)), direct_us,
+                  {"importer": 10.0, "helper": 20.0})
 
 
-def catheter() -> float:
-    fmu = Fmu("Catheter")
+def catheter_fmu_step(process: str, drive: list[np.ndarray]):
+    """The FMU instance with its model in ``process``, its step function and its last outputs."""
+    fmu = Fmu("Catheter", process)
     f, c = fmu.f, fmu.c
     set_f64, get_f64, get_bool, do_step = f["fmi3SetFloat64"], f["fmi3GetFloat64"], f["fmi3GetBoolean"], \
         f["fmi3DoStep"]
@@ -185,12 +216,6 @@ def catheter() -> float:
     p_in, p_out, p_warning = pointer(inputs), pointer(outputs), pointer(warning)
     refs = fmu.step_refs
 
-    model = CatheterModel(CatheterParameters(), dt=DT)
-    direct_out = np.zeros(101)
-    direct_warning = [False]
-    drive = [catheter_inputs(k) for k in range(BLOCK * BLOCKS)]
-    tip_forces = [d[2:5].copy() for d in drive]
-
     def fmu_step(k):
         inputs[:] = drive[k]
         t0 = CLOCK()
@@ -200,8 +225,19 @@ def catheter() -> float:
         get_bool(c, warning_vr, 1, p_warning, 1)
         elapsed = CLOCK() - t0
         if status != 0:
-            raise SystemExit(f"Catheter: fmi3DoStep returned {status}")
+            raise SystemExit(f"Catheter ({process} process): fmi3DoStep returned {status}")
         return elapsed
+
+    return fmu, fmu_step, (outputs, warning)
+
+
+def catheter() -> dict:
+    model = CatheterModel(CatheterParameters(), dt=DT)
+    direct_out = np.zeros(101)
+    direct_warning = [False]
+    drive = [catheter_inputs(k) for k in range(BLOCK * BLOCKS)]
+    tip_forces = [d[2:5].copy() for d in drive]
+    instances = {process: catheter_fmu_step(process, drive) for process in PROCESSES}
 
     def direct_step(k):
         insertion, rotation = drive[k][0], drive[k][1]
@@ -214,11 +250,13 @@ def catheter() -> float:
         direct_warning[0] = out.effort_warning
         return CLOCK() - t0
 
-    fmu_us, direct_us = alternate(fmu_step, direct_step)
-    if not (np.array_equal(outputs, direct_out) and bool(warning[0]) == bool(direct_warning[0])):
-        raise SystemExit("Catheter: the FMU and the direct model disagree on the last step")
-    fmu.close()
-    return report(f"Catheter step, {BLOCK * BLOCKS} steps each, alternating blocks of {BLOCK}", fmu_us, direct_us)
+    *fmu_us, direct_us = alternate(*(instances[p][1] for p in PROCESSES), direct_step)
+    for process, (fmu, _, (outputs, warning)) in instances.items():
+        if not (np.array_equal(outputs, direct_out) and bool(warning[0]) == bool(direct_warning[0])):
+            raise SystemExit(f"Catheter: the FMU ({process} process) and the direct model disagree on the last step")
+        fmu.close()
+    return report(f"Catheter step, {BLOCK * BLOCKS} steps each, alternating blocks of {BLOCK}",
+                  dict(zip(PROCESSES, fmu_us)), direct_us, {"importer": 10.0})
 
 
 def main() -> None:

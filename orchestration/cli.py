@@ -51,12 +51,15 @@ OUT that is a symbolic link is followed: the results replace its target, the lin
 
 
 def _cmd_build(args) -> int:
-    from .build import BuildError, available_fmus, build_all
+    from .build import BuildError, available_fmus, build_all, first_load_seconds, fmu_contents
 
     names = args.fmus or available_fmus()
     try:
         for path in build_all(names, Path(args.dest)):
-            print(f"built {path}")
+            first = first_load_seconds(path)
+            load = (f"; first load {first:.1f} s (instantiation to the first step's end, as on a machine that "
+                    "never ran it)" if first is not None else "; carries no Python runtime (needs the build's)")
+            print(f"built {path}: {path.stat().st_size / 1e6:.0f} MB ({fmu_contents(path)}){load}")
     except BuildError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -23,10 +23,11 @@ pytestmark = pytest.mark.usefixtures("model_process")
 
 RUNS = 30
 
-# name -> (steps, step size, inputs {name: (count, value)}, outputs {name: count})
+# name -> (steps, step size, inputs {name: (count, value)}, outputs {name: count}); the inputs ramp from
+# value to 2*value (fmu_host): the tool points (v, v, v) of Contact go from the lumen into the wall
 CASES = {
     "Catheter": (300, 0.001, {"insertion": (1, 0.05), "tip_force": (3, 0.3)}, {"tip_position": 3, "bend_angle": 1}),
-    "Contact": (200, 0.001, {"tool_positions": (93, 0.01)}, {"tool_force": 3, "penetration_depth": 1}),
+    "Contact": (200, 0.001, {"tool_positions": (93, 0.0072)}, {"tool_force": 3, "penetration_depth": 1}),
     "Tissue": (6, 1.0 / 30.0, {"contact_force": (8064, 1e-4)}, {"strain_energy": 1, "kinetic_energy": 1}),
 }
 
@@ -130,3 +131,27 @@ def test_a_step_that_fails_ends_the_run_and_the_host_still_exits_normally(c_host
         assert "run ended: fmi3DoStep(" in result.stdout and "returned 3" in result.stdout
         assert "run completed" not in result.stdout
         assert "logStatusError" in result.stderr
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_a_state_saved_to_a_file_and_restored_as_fmusim_does_continues_the_run(c_host, fmus, name, tmp_path):
+    """fmusim v0.0.39's --final-fmu-state-file and --initial-fmu-state-file: get, serialize, write
+    and fmi3FreeFMUState(instance, state) (the state itself where its pointer is due); in a fresh
+    process read, deserialize, set, free the same way, and step on without initialization. fmusim
+    stops at any status but fmi3OK; the continued run must end where the whole run ends, to the bit."""
+    steps = CASES[name][0]
+    whole = _run(c_host, _arguments(name, fmus[name], tmp_path / "whole"))
+    assert whole.returncode == 0 and "run completed" in whole.stdout, whole.stdout + whole.stderr[-2000:]
+    state_file = tmp_path / "state.bin"
+    first = _run(c_host, _arguments(name, fmus[name], tmp_path / "first")
+                 + ["--stop-after", str(steps // 2), "--final-state-file", str(state_file)])
+    assert first.returncode == 0 and "run completed" in first.stdout, first.stdout + first.stderr[-2000:]
+    assert state_file.stat().st_size > 0
+    second = _run(c_host, _arguments(name, fmus[name], tmp_path / "second")
+                  + ["--from-step", str(steps // 2), "--initial-state-file", str(state_file)])
+    assert second.returncode == 0 and "run completed" in second.stdout, second.stdout + second.stderr[-2000:]
+    assert "fmusim would stop" not in first.stdout + second.stdout
+    continued, expected = _outputs(second.stdout), _outputs(whole.stdout)
+    assert continued.keys() == expected.keys()
+    for port, values in expected.items():
+        np.testing.assert_array_equal(continued[port], values, err_msg=port)

@@ -1332,11 +1332,14 @@ fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
     if (!inst || !allowed(inst, ALLOWED_FMUState, "fmi3FreeFMUState")) return fmi3Error;
     if (!FMUState) return fmi3OK;
     SavedState *misplaced = registered(inst, FMUState);
-    if (misplaced) { /* the state itself where a pointer to it is due (fmusim v0.0.39) */
-        log_message(inst, fmi3Warning, "fmi3FreeFMUState: was given the state %p itself, not a pointer to it; "
-                    "freed that state (the standard passes fmi3FMUState*)", (void *)FMUState);
+    if (misplaced) {
+        /* The state itself where a pointer to it is due (fmusim v0.0.39): the intent is unambiguous
+         * (it is one of this instance's live states), so it is freed and the call succeeds: fmusim
+         * stops at any status but fmi3OK, and would not restore a state from its file otherwise. */
+        log_message(inst, fmi3OK, "fmi3FreeFMUState: was given the state %p itself, not a pointer to it; freed "
+                    "that state (the standard passes fmi3FMUState*)", (void *)FMUState);
         free_state(inst, misplaced);
-        return fmi3Warning;
+        return fmi3OK;
     }
     if (!*FMUState) return fmi3OK;
     SavedState *saved = live_state(inst, "fmi3FreeFMUState", *FMUState);

@@ -10,6 +10,14 @@
  *   --output NAME:COUNT        print the COUNT Float64 values of NAME after the last step (%.17g)
  *   --param NAME:COUNT=VALUE   set COUNT Float64 values of parameter NAME before initialization
  *   --state                    save, serialize, restore and replay the second half
+ *   --final-state-file PATH    after the last step, save the FMU state to PATH as fmusim v0.0.39 does
+ *                              (get, serialize, write, then fmi3FreeFMUState(instance, state): the state
+ *                              itself where the standard passes a pointer to it); each call must return
+ *                              fmi3OK, or fmusim would stop there
+ *   --initial-state-file PATH  right after instantiation, restore the FMU state from PATH as fmusim does
+ *                              (read, deserialize, set, free the same way) and skip initialization
+ *   --from-step K              start at step K (time K*STEP_SIZE): a run that continues a saved state
+ *   --stop-after K             end after step K-1 (the inputs still ramp over STEPS): a run to save from
  *   --misuse                   also make calls that must be refused (fmi3DoStep and fmi3Terminate before
  *                              initialization, a NaN input halfway) and check they return fmi3Error
  * Exit status 0 when every call succeeded and every misuse was refused.
@@ -178,6 +186,10 @@ static void logger(fmi3InstanceEnvironment env, fmi3Status status, fmi3String ca
  * after fmi3Fatal), the library unloaded, and a normal exit that reports the status on stdout. */
 #define CHECK(call) do { fmi3Status s_ = (call); if (s_ > fmi3Warning) { \
     printf("run ended: %s returned %d\n", #call, s_); ended = s_; goto end; } } while (0)
+/* fmusim's CALL: anything but fmi3OK stops it */
+#define FMUSIM_CALL(call) do { fmi3Status s_ = (call); if (s_ != fmi3OK) { \
+    printf("fmusim would stop: %s returned %d\n", #call, s_); failures++; \
+    ended = s_ > fmi3Warning ? s_ : fmi3Error; goto end; } } while (0)
 
 static int serve(const char *fmu, const char *work);
 
@@ -189,6 +201,8 @@ int main(int argc, char **argv) {
     double h = strtod(argv[4], NULL);
     Port inputs[MAX_PORTS], outputs[MAX_PORTS];
     int n_inputs = 0, n_outputs = 0, n_params = 0, with_state = 0, misuse = 0;
+    const char *final_state_file = NULL, *initial_state_file = NULL;
+    long from_step = 0, stop_after = 0;
     Port params[MAX_PORTS];
     fmi3Status ended = fmi3OK;
     for (int i = 5; i < argc; i++) {
@@ -196,6 +210,14 @@ int main(int argc, char **argv) {
             with_state = 1;
         } else if (strcmp(argv[i], "--misuse") == 0) {
             misuse = 1;
+        } else if (i + 1 < argc && strcmp(argv[i], "--final-state-file") == 0) {
+            final_state_file = argv[++i];
+        } else if (i + 1 < argc && strcmp(argv[i], "--initial-state-file") == 0) {
+            initial_state_file = argv[++i];
+        } else if (i + 1 < argc && strcmp(argv[i], "--from-step") == 0) {
+            from_step = strtol(argv[++i], NULL, 10);
+        } else if (i + 1 < argc && strcmp(argv[i], "--stop-after") == 0) {
+            stop_after = strtol(argv[++i], NULL, 10);
         } else if (i + 1 < argc && (strcmp(argv[i], "--input") == 0 || strcmp(argv[i], "--output") == 0
                                     || strcmp(argv[i], "--param") == 0)) {
             Port *port = argv[i][2] == 'i' ? &inputs[n_inputs++]
@@ -260,14 +282,32 @@ int main(int argc, char **argv) {
         refused += fmi3DoStep(instance, 0.0, h, fmi3True, &event, &terminate, &early, &last) == fmi3Error;
         refused += fmi3Terminate(instance) == fmi3Error;
     }
-    CHECK(fmi3EnterInitializationMode(instance, fmi3False, 0.0, 0.0, fmi3False, 0.0));
-    CHECK(fmi3ExitInitializationMode(instance));
+    if (initial_state_file) { /* fmusim v0.0.39's FMIRestoreFMUStateFromFile */
+        FILE *file = fopen(initial_state_file, "rb");
+        if (!file) die("cannot read", initial_state_file);
+        fseek(file, 0L, SEEK_END);
+        size_t size = (size_t)ftell(file);
+        fseek(file, 0L, SEEK_SET);
+        fmi3Byte *bytes = malloc(size ? size : 1);
+        if (fread(bytes, 1, size, file) != size) die("cannot read", initial_state_file);
+        fclose(file);
+        fmi3FMUState state = NULL;
+        fmi3Status deserialized = fmi3DeserializeFMUState(instance, bytes, size, &state);
+        free(bytes);
+        FMUSIM_CALL(deserialized);
+        FMUSIM_CALL(fmi3SetFMUState(instance, state));
+        FMUSIM_CALL(fmi3FreeFMUState(instance, (fmi3FMUState *)state)); /* sic: the state itself */
+    } else {
+        CHECK(fmi3EnterInitializationMode(instance, fmi3False, 0.0, 0.0, fmi3False, 0.0));
+        CHECK(fmi3ExitInitializationMode(instance));
+    }
 
     long half = steps / 2;
     size_t total_out = 0;
     for (int i = 0; i < n_outputs; i++) total_out += outputs[i].count;
     for (int pass = 0; pass < (with_state ? 2 : 1); pass++) {
-        for (long k = pass ? half : 0; k < steps; k++) {
+        long last_step = stop_after > 0 && stop_after < steps ? stop_after : steps;
+        for (long k = pass ? half : from_step; k < last_step; k++) {
             if (with_state && pass == 0 && k == half) CHECK(fmi3GetFMUState(instance, &halfway));
             double t = (double)k * h;
             for (int i = 0; i < n_inputs; i++) {
@@ -299,6 +339,22 @@ int main(int argc, char **argv) {
                 for (size_t j = 0; j < outputs[i].count; j++) printf(" %.17g", values[at + j]);
                 printf("\n");
                 at += outputs[i].count;
+            }
+            if (final_state_file) { /* fmusim v0.0.39's FMISaveFMUStateToFile */
+                fmi3FMUState state = NULL;
+                size_t size = 0;
+                FMUSIM_CALL(fmi3GetFMUState(instance, &state));
+                FMUSIM_CALL(fmi3SerializedFMUStateSize(instance, state, &size));
+                fmi3Byte *bytes = malloc(size ? size : 1);
+                fmi3Status serialized = fmi3SerializeFMUState(instance, state, bytes, size);
+                FILE *file = serialized == fmi3OK ? fopen(final_state_file, "wb") : NULL;
+                if (file) {
+                    fwrite(bytes, 1, size, file);
+                    fclose(file);
+                }
+                free(bytes);
+                FMUSIM_CALL(serialized);
+                FMUSIM_CALL(fmi3FreeFMUState(instance, (fmi3FMUState *)state)); /* sic: the state itself */
             }
             if (with_state) { /* through the serialized form, as a master that stores states on disk would */
                 size_t size = 0;
