@@ -237,7 +237,12 @@ class CarriedRuntime:
 
     archive: Path
     digest: str
-    requirements: dict
+    #: {"python": "3.11", "glibc": "2.36", "requirements": {distribution: version}}
+    description: dict
+
+    @property
+    def requirements(self) -> dict:
+        return self.description["requirements"]
 
 
 def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
@@ -262,7 +267,7 @@ def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
         except OSError as exc:
             partial.unlink(missing_ok=True)
             raise unwritable("archiving the FMUs' Python runtime", exc, build_dir) from None
-    return CarriedRuntime(archive, folder.name.partition("-")[2], json.loads((folder / "requirements.json").read_text()))
+    return CarriedRuntime(archive, folder.name.partition("-")[2], json.loads((folder / "runtime.json").read_text()))
 
 
 def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict,
@@ -304,7 +309,7 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
         if runtime is not None:  # importers extract without file modes: the layer sets the x bit itself
             shutil.copy(helper_executable(), binaries / HELPER_EXECUTABLE)
         (root / "documentation").mkdir()
-        (root / "documentation" / "index.html").write_text(_documentation(description, environment))
+        (root / "documentation" / "index.html").write_text(_documentation(description, environment, runtime))
         partial = dest / f".{name}.fmu.partial"
         with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as archive:
             for path in sorted(root.rglob("*")):
@@ -319,8 +324,42 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
     return final
 
 
-def _documentation(description: dict, environment: dict) -> str:
+def _running_with_runtime(runtime: CarriedRuntime) -> str:
+    """How an FMU that carries its runtime runs: what an importer must provide (next to nothing)."""
+    packages = ", ".join(f"{name} {version}" for name, version in runtime.requirements.items())
+    return f"""<h2>Running it</h2>
+<p>The model is Python code (in <code>resources/</code>). The FMU carries what runs it: CPython
+{runtime.description['python']} and the packages the model imports ({packages}), with the system
+libraries they link, in <code>resources/runtime.zip</code>, and its kernels compiled for any x86-64
+CPU (<code>resources/numba_cache</code>). An importer provides nothing but Linux on x86-64 with glibc
+{runtime.description['glibc']} or newer (Debian 12, Ubuntu 22.10, RHEL 10) and zlib
+(<code>libz.so.1</code>, on every distribution), with which the FMU unpacks its runtime once per
+machine into <code>$AAA_COSIM_RUNTIME_CACHE</code>, else <code>$XDG_CACHE_HOME/aaa-cosim/runtime</code>,
+else <code>~/.cache/aaa-cosim/runtime</code> (about 460 MB; where none can be written, beside the
+extracted resources).</p>
+<p>Where the model runs: in an importer without Python (C, C++, Rust, fmusim, ...) in the importer's
+process, on the carried interpreter (its home set, the importer's <code>PYTHON*</code> variables
+ignored). In a Python importer (FMPy, ...) in the importer's process when its Python is
+{runtime.description['python']} and has exactly those package versions; otherwise in a helper process
+the FMU starts (<code>binaries/x86_64-linux/aaa_cosim_helper</code>) and ends, its calls forwarded
+over shared memory (microseconds per call). <code>AAA_COSIM_MODEL_PROCESS=importer</code> or
+<code>helper</code> chooses. The interpreter is never finalized: the process exit reclaims it.</p>
+"""
+
+
+def _documentation(description: dict, environment: dict, runtime: CarriedRuntime | None) -> str:
     library = environment["libpython"] or "(none: this Python was built without a shared library)"
+    running = _running_with_runtime(runtime) if runtime is not None else f"""<h2>Running it</h2>
+<p>This build carries no Python runtime (its Python had no shared library). The model is Python code
+(in <code>resources/</code>) run by an embedded CPython {environment['python_version']}.
+In a Python importer (FMPy, ...) the importer's interpreter is used: run the importer with an
+environment that has numpy, scipy, numba, cholespy, meshio and trimesh. In any other importer
+the FMU loads the Python library recorded at build time:</p>
+<pre>{library}</pre>
+<p>and the packages of <code>{', '.join(environment['site_packages'])}</code>. To use another installation set
+<code>AAA_COSIM_LIBPYTHON</code> to its <code>libpython3.x.so</code>, <code>AAA_COSIM_PYTHONHOME</code> to
+its prefix and <code>PYTHONPATH</code> to a site-packages folder with those packages.</p>
+"""
     return f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>{description['model_name']}</title></head><body>
 <h1>{description['model_name']}</h1>
@@ -328,20 +367,7 @@ def _documentation(description: dict, environment: dict) -> str:
 <p>Variables, units and start values: <code>modelDescription.xml</code>. FMI 3.0 Co-Simulation; the
 communication step must be a whole multiple of <code>fixedInternalStepSize</code> (parameter
 <code>internal_step</code>). FMU state can be saved, restored and serialized.</p>
-<h2>Running it</h2>
-<p>The model is Python code (in <code>resources/</code>) run by an embedded CPython {environment['python_version']}.
-In a Python importer (FMPy, ...) the importer's interpreter is used: run the importer with an
-environment that has numpy, scipy, numba, cholespy, meshio and trimesh (and scikit-sparse for the
-system's faster CHOLMOD, when installed, with threadpoolctl: its BLAS calls run on one thread, its
-factorisations ask OpenMP for 4 threads, which only <code>OMP_THREAD_LIMIT=1</code> in the importer's
-environment caps). In any other importer (C, C++, Rust, ...)
-the FMU loads the Python library recorded at build time:</p>
-<pre>{library}</pre>
-<p>and the packages of <code>{', '.join(environment['site_packages'])}</code>. To use another installation set
-<code>AAA_COSIM_LIBPYTHON</code> to its <code>libpython3.x.so</code> and <code>PYTHONPATH</code> to a
-site-packages folder with those packages. The embedded interpreter is never finalized: the process exit
-reclaims it.</p>
-</body></html>
+{running}</body></html>
 """
 
 

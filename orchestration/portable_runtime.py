@@ -11,6 +11,7 @@ lib/python3.X/lib-dynload/       its extension modules, pruned (no TLS, no GUI, 
 lib/python3.X/site-packages/     the packages the model imports, and only those
 deps/                            the shared libraries those need that glibc does not provide
 manifest.txt                     what the FMI layer loads, in order (read by python_embed.c)
+runtime.json                     its Python, the oldest glibc it runs on, the package versions
 ```
 
 What the model imports is measured, not listed by hand: a fresh interpreter imports every module
@@ -150,6 +151,17 @@ def requirements(entries: dict) -> dict[str, str]:
     return dict(sorted(found.items()))
 
 
+def glibc_required(folder: Path) -> str:
+    """The newest glibc symbol version any carried shared object needs (the oldest glibc it runs on),
+    read from the version strings in the files."""
+    newest = (2, 0)
+    for so in Path(folder).rglob("*.so*"):
+        if so.is_file():
+            for match in re.finditer(rb"GLIBC_(\d+)\.(\d+)", so.read_bytes()):
+                newest = max(newest, (int(match.group(1)), int(match.group(2))))
+    return "%d.%d" % newest
+
+
 def runtime_digest(entries: dict) -> str:
     """What a runtime is made of: the interpreter, the entries carried and their distributions' versions."""
     versions = sorted(f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions())
@@ -253,7 +265,8 @@ def build_runtime(build_dir: Path, source_root: Path) -> Path:
     lines += [f"preload deps/{soname} {soname}" for soname in _dependency_order(needed)]
     lines += [f"libpython lib/{library.name}"]
     (partial / "manifest.txt").write_text("\n".join(lines) + "\n")
-    (partial / "requirements.json").write_text(json.dumps(requirements(entries), indent=2))
+    description = {"python": version, "glibc": glibc_required(partial), "requirements": requirements(entries)}
+    (partial / "runtime.json").write_text(json.dumps(description, indent=2))
     shutil.rmtree(folder, ignore_errors=True)
     partial.rename(folder)
     for older in Path(build_dir).glob("runtime-*"):  # of other environments or versions: never read again
