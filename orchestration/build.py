@@ -245,6 +245,17 @@ class CarriedRuntime:
         return self.description["requirements"]
 
 
+def prepare_carried_runtime(quiet: bool = False) -> None:
+    """Build the runtime the FMUs carry now (once per environment), saying so when it takes time."""
+    try:
+        folder = portable_runtime.runtime_folder(BUILD_DIR, SRC)
+    except portable_runtime.RuntimeUnavailable:
+        folder = None
+    if not quiet and folder is not None and not folder.with_suffix(".zip").exists():
+        print("packing the Python runtime the FMUs carry (once per environment, about a minute) ...", flush=True)
+    carried_runtime()
+
+
 def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
     """The runtime the FMUs carry, built and archived once per environment; None (with a warning
     saying why) when this Python cannot be carried: the FMUs then need the build's Python."""
@@ -534,6 +545,8 @@ def fmu_is_stale(name: str, dest: Path = DEFAULT_FMU_DIR) -> bool:
 def ensure_fmus_built(quiet: bool = False) -> None:
     """Build the project's FMUs into fmus/ when missing or older than their sources, then warm the
     numba cache their kernels compile into, so that a run compiles nothing while it is timed."""
+    if any(fmu_is_stale(name) for name in available_fmus()):
+        prepare_carried_runtime(quiet)
     for name in available_fmus():
         if fmu_is_stale(name):
             if not quiet:

@@ -51,10 +51,11 @@ OUT that is a symbolic link is followed: the results replace its target, the lin
 
 
 def _cmd_build(args) -> int:
-    from .build import BuildError, available_fmus, build_all, first_load_seconds, fmu_contents
+    from .build import BuildError, available_fmus, build_all, first_load_seconds, fmu_contents, prepare_carried_runtime
 
     names = args.fmus or available_fmus()
     try:
+        prepare_carried_runtime()
         for path in build_all(names, Path(args.dest)):
             first = first_load_seconds(path)
             load = (f"; first load {first:.1f} s (instantiation to the first step's end, as on a machine that "

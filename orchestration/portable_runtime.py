@@ -102,8 +102,29 @@ def python_library() -> Path:
     return library.resolve()
 
 
-def probe_imports(source_root: Path) -> dict[str, list[str]]:
-    """The site-packages entries the FMU packages import: {top-level entry: [sub-entries used]}."""
+def _environment_versions() -> list[str]:
+    return sorted(f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions())
+
+
+def probe_imports(source_root: Path, build_dir: Path) -> dict[str, list[str]]:
+    """The site-packages entries the FMU packages import: {top-level entry: [sub-entries used]};
+    probed once per version of their sources and of this environment (cached in ``build_dir``)."""
+    sources = hashlib.sha256(sys.version.encode() + "\n".join(_environment_versions()).encode())
+    for package in PROBED_PACKAGES + ("fmi3_layer",):
+        for path in sorted((Path(source_root) / package).rglob("*.py")):
+            sources.update(path.name.encode() + path.read_bytes())
+    cached = Path(build_dir) / f"runtime-probe-{sources.hexdigest()[:16]}.json"
+    if cached.exists():
+        return json.loads(cached.read_text())
+    found = _probe(source_root)
+    Path(build_dir).mkdir(parents=True, exist_ok=True)
+    partial = cached.with_name(cached.name + f".{os.getpid()}.partial")
+    partial.write_text(json.dumps(found))
+    partial.replace(cached)
+    return found
+
+
+def _probe(source_root: Path) -> dict[str, list[str]]:
     layer = Path(source_root) / "fmi3_layer"
     proc = subprocess.run([sys.executable, "-c", _PROBE, ",".join(PROBED_PACKAGES), ",".join(LAZY_IMPORTS),
                            str(source_root), str(layer)], capture_output=True, text=True)
@@ -164,7 +185,7 @@ def glibc_required(folder: Path) -> str:
 
 def runtime_digest(entries: dict) -> str:
     """What a runtime is made of: the interpreter, the entries carried and their distributions' versions."""
-    versions = sorted(f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions())
+    versions = _environment_versions()
     library = python_library()
     text = json.dumps([sys.version, str(library), library.stat().st_size, entries, versions,
                        Path(__file__).read_bytes().decode()], sort_keys=True)
@@ -238,11 +259,17 @@ def _dependency_order(libraries: dict[str, Path]) -> list[str]:
     return order
 
 
+def runtime_folder(build_dir: Path, source_root: Path) -> Path:
+    """Where the runtime for this Python and these packages is (or will be) built."""
+    entries = _carried_entries(probe_imports(source_root, build_dir))
+    return Path(build_dir) / f"runtime-{runtime_digest(entries)}"
+
+
 def build_runtime(build_dir: Path, source_root: Path) -> Path:
     """The runtime folder for this Python and these packages (built once, then reused)."""
-    entries = _carried_entries(probe_imports(source_root))
+    entries = _carried_entries(probe_imports(source_root, build_dir))
     library = python_library()
-    folder = Path(build_dir) / f"runtime-{runtime_digest(entries)}"
+    folder = runtime_folder(build_dir, source_root)
     if (folder / "manifest.txt").exists():
         return folder
     version = "%d.%d" % sys.version_info[:2]
@@ -260,17 +287,22 @@ def build_runtime(build_dir: Path, source_root: Path) -> Path:
     # unchecked hashes: the .pyc is used whatever the file times an importer's extraction leaves
     compileall.compile_dir(str(stdlib), quiet=2, workers=0,
                            invalidation_mode=compileall.py_compile.PycInvalidationMode.UNCHECKED_HASH)
-    lines = [f"# read by the FMI layer (python_embed.c): what it loads, in order, relative to this folder",
+    lines = ["# read by the FMI layer (python_embed.c): what it loads, in order, relative to this folder",
              f"python {version}"]
     lines += [f"preload deps/{soname} {soname}" for soname in _dependency_order(needed)]
     lines += [f"libpython lib/{library.name}"]
     (partial / "manifest.txt").write_text("\n".join(lines) + "\n")
     description = {"python": version, "glibc": glibc_required(partial), "requirements": requirements(entries)}
     (partial / "runtime.json").write_text(json.dumps(description, indent=2))
-    shutil.rmtree(folder, ignore_errors=True)
-    partial.rename(folder)
+    try:  # another process of this checkout may have finished the same runtime first: its stays
+        partial.rename(folder)
+    except OSError:
+        shutil.rmtree(partial, ignore_errors=True)
+        if not (folder / "manifest.txt").exists():
+            raise
     for older in Path(build_dir).glob("runtime-*"):  # of other environments or versions: never read again
-        if older.name not in (folder.name, folder.name + ".zip") and not older.name.endswith(".partial"):
+        if older.name not in (folder.name, folder.name + ".zip") and not older.name.endswith(".partial") \
+                and not older.name.startswith("runtime-probe-"):
             shutil.rmtree(older, ignore_errors=True) if older.is_dir() else older.unlink(missing_ok=True)
     logger.info("built the FMUs' Python runtime %s (%.0f MB)", folder, folder_size(folder) / 1e6)
     return folder
