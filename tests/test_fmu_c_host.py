@@ -155,3 +155,29 @@ def test_a_state_saved_to_a_file_and_restored_as_fmusim_does_continues_the_run(c
     assert continued.keys() == expected.keys()
     for port, values in expected.items():
         np.testing.assert_array_equal(continued[port], values, err_msg=port)
+
+
+def test_another_installations_python_runs_the_model_or_is_refused_with_the_fix(c_host, fmus, tmp_path):
+    """AAA_COSIM_LIBPYTHON names another installation's libpython (here the build's own, with the
+    project's site-packages on PYTHONPATH): the model runs on it. A copy of that library whose
+    standard library is not beside it is refused with the fix (AAA_COSIM_PYTHONHOME), where CPython
+    would abort the importer ("init_fs_encoding")."""
+    import sysconfig
+
+    library = Path(sysconfig.get_config_var("LIBDIR")) / sysconfig.get_config_var("INSTSONAME")
+    if not library.exists():
+        pytest.skip(f"this Python has no shared library ({library})")
+    site_packages = sysconfig.get_paths()["purelib"]
+    base = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "AAA_COSIM_MODEL_PROCESS": "importer"}
+    args = _arguments("Catheter", fmus["Catheter"], tmp_path / "work")
+    ran = subprocess.run([str(c_host), *args], capture_output=True, text=True, timeout=300,
+                         env={**base, "AAA_COSIM_LIBPYTHON": str(library), "PYTHONPATH": site_packages})
+    assert ran.returncode == 0 and "run completed" in ran.stdout, ran.stdout + ran.stderr[-2000:]
+    astray = tmp_path / "elsewhere" / "lib"
+    astray.mkdir(parents=True)
+    shutil.copy(library, astray / library.name)
+    refused = subprocess.run([str(c_host), *_arguments("Catheter", fmus["Catheter"], tmp_path / "work2")],
+                             capture_output=True, text=True, timeout=300,
+                             env={**base, "AAA_COSIM_LIBPYTHON": str(astray / library.name)})
+    assert refused.returncode >= 0, refused.stderr[-2000:]  # not killed by a signal (an abort)
+    assert "set AAA_COSIM_PYTHONHOME" in refused.stdout + refused.stderr

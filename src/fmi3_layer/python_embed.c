@@ -139,10 +139,11 @@ static void *load_carried_runtime(const char *resource_dir, char *home, size_t h
     return python;
 }
 
-/* Set the embedded interpreter's home and isolate it from the importer's environment (its
- * PYTHONPATH, PYTHONHOME and user site would mix another installation's packages in). The
- * legacy globals, not PyConfig: their layout does not depend on the Python version. */
-static int configure_home(void *handle, const char *home, char *reason, size_t reason_size) {
+/* Set the embedded interpreter's home; `isolate` (the carried runtime) also ignores the
+ * importer's environment (its PYTHONPATH, PYTHONHOME and user site would mix another
+ * installation's packages in; another installation is found through PYTHONPATH, so it keeps it).
+ * The legacy globals, not PyConfig: their layout does not depend on the Python version. */
+static int configure_home(void *handle, const char *home, int isolate, char *reason, size_t reason_size) {
     void (*set_home)(const wchar_t *) = (void (*)(const wchar_t *))dlsym(handle, "Py_SetPythonHome");
     wchar_t *(*decode)(const char *, size_t *) = (wchar_t * (*)(const char *, size_t *)) dlsym(handle, "Py_DecodeLocale");
     if (!set_home || !decode) {
@@ -157,7 +158,7 @@ static int configure_home(void *handle, const char *home, char *reason, size_t r
     }
     set_home(wide_home);
     const char *flags[] = {"Py_IgnoreEnvironmentFlag", "Py_NoUserSiteDirectory", "Py_DontWriteBytecodeFlag"};
-    for (size_t i = 0; i < sizeof flags / sizeof flags[0]; i++) {
+    for (size_t i = 0; isolate && i < sizeof flags / sizeof flags[0]; i++) {
         int *flag = (int *)dlsym(handle, flags[i]);
         if (flag) *flag = 1;
     }
@@ -238,7 +239,7 @@ int python_ensure(const char *resource_dir, int *started, char *reason, size_t r
                     return -1;
                 }
             }
-            if (home[0] && configure_home(handle, home, reason, reason_size) != 0) {
+            if (home[0] && configure_home(handle, home, carried, reason, reason_size) != 0) {
                 pthread_mutex_unlock(&bind_lock);
                 return -1;
             }

@@ -14,7 +14,6 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/mman.h>
-#include <sys/prctl.h>
 #include <sys/stat.h>
 #include <sys/syscall.h>
 #include <sys/wait.h>
@@ -145,9 +144,15 @@ static void say(Remote *r, fmi3Status status, const char *format, ...) {
 
 static int helper_alive(void *arg) {
     Remote *r = arg;
-    int status;
-    if (waitpid(r->pid, &status, WNOHANG) == r->pid) {
+    int status = 0;
+    pid_t ended = waitpid(r->pid, &status, WNOHANG);
+    if (ended == r->pid) {
         r->dead = status ? status : -1;
+        return 0;
+    }
+    /* an importer that ignores SIGCHLD has its children reaped for it: ask whether it still exists */
+    if (ended < 0 && errno == ECHILD && kill(r->pid, 0) != 0 && errno == ESRCH) {
+        r->dead = -1;
         return 0;
     }
     return 1;
@@ -763,9 +768,10 @@ static int importer_alive(void *arg) {
 }
 
 int aaa_cosim_serve(int fd) {
+    /* The importer's end is noticed by the parent changing (checked at least once a second while
+     * idle), not by PR_SET_PDEATHSIG: that fires when the importer's *thread* that started the
+     * helper ends, which a pool thread of the importer may do while the instance lives on. */
     importer = getppid();
-    prctl(PR_SET_PDEATHSIG, SIGKILL);
-    if (getppid() != importer) return 1;
     served = mmap(NULL, CHANNEL_BYTES, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
     if (served == MAP_FAILED) return 2;
     close(fd);

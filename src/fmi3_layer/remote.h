@@ -14,8 +14,8 @@
  * The channel: one memfd per instance, mapped by both processes; a request is written by the
  * importer, then `request` is incremented; the helper answers and sets `response` to the same
  * number. Each side spins briefly, then sleeps on a futex, so a 1 kHz step costs microseconds,
- * and an idle helper costs nothing. The helper dies with its importer (PR_SET_PDEATHSIG); an
- * importer waiting on a helper that died gets fmi3Fatal and a log line, never a hang.
+ * and an idle helper costs nothing. The helper ends within a second of its importer; an importer
+ * waiting on a helper that died gets fmi3Fatal and a log line, never a hang.
  */
 #ifndef AAA_REMOTE_H
 #define AAA_REMOTE_H
