@@ -144,7 +144,9 @@ def layer_library(build_dir: Path = BUILD_DIR) -> Path:
         # -z nodelete: the embedded interpreter keeps pointers into the library (its callbacks) for the
         # life of the process, so an importer's dlclose must not unmap it (a second instantiation
         # through the same handle, e.g. FMPy after freeInstance, would jump into unmapped code)
-        "-Wl,-z,nodelete", "-o", str(output), "-ldl", "-lpthread", "-lm"], build_dir)
+        "-Wl,-z,nodelete",
+        # the debug information stays, compressed (the binary is written on every extraction)
+        "-Wl,--compress-debug-sections=zlib", "-o", str(output), "-ldl", "-lpthread", "-lm"], build_dir)
 
 
 def helper_executable(build_dir: Path = BUILD_DIR) -> Path:
@@ -152,7 +154,7 @@ def helper_executable(build_dir: Path = BUILD_DIR) -> Path:
     sources = [LAYER / name for name in LAYER_SOURCES] + sorted((LAYER / "include").glob("*.h"))
     return _shared_library(HELPER_EXECUTABLE, "the FMUs' helper process", sources, lambda output: [
         "-std=gnu11", "-O2", "-g", "-Wall", "-Wextra", f"-I{LAYER / 'include'}", str(LAYER / "helper_main.c"),
-        "-o", str(output), "-ldl"], build_dir)
+        "-Wl,--compress-debug-sections=zlib", "-o", str(output), "-ldl"], build_dir)
 
 
 COMPILED_LOOP_SOURCE = REPO_ROOT / "orchestration" / "compiled_loop.c"
@@ -355,6 +357,9 @@ ignored). In a Python importer (FMPy, ...) in the importer's process when its Py
 the FMU starts (<code>binaries/x86_64-linux/aaa_cosim_helper</code>) and ends, its calls forwarded
 over shared memory (microseconds per call). <code>AAA_COSIM_MODEL_PROCESS=importer</code> or
 <code>helper</code> chooses. The interpreter is never finalized: the process exit reclaims it.</p>
+<p>Threads: with scikit-sparse carried, the tissue's CHOLMOD runs its BLAS calls on one thread, but
+its factorisations ask OpenMP for 4 threads, which only <code>OMP_THREAD_LIMIT=1</code> in the
+importer's environment caps (a helper process inherits it).</p>
 """
 
 

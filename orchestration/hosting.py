@@ -99,6 +99,11 @@ def check_port_lists(component: str, ports: dict[str, PortInfo], inputs: list[st
                     f"{component}.{name} is a {port.causality}, not an input: it cannot be written while stepping")
 
 
+def _needed_in_process(name: str) -> bool:
+    """Whether an FMU's file ``name`` is used when its model runs in this process."""
+    return name != "resources/runtime.zip" and not name.startswith("resources/numba_cache/")
+
+
 class InProcessFmu:
     """One FMU instance loaded into this process through the FMI 3.0 binding.
 
@@ -143,8 +148,9 @@ class InProcessFmu:
         description = self.description
         self._unzip_dir = tempfile.mkdtemp(prefix=f"fmu_{self.name}_")
         try:
-            # the runtime an FMU carries is for importers without this Python (python_embed.h)
-            extract(str(description.path), self._unzip_dir, include=lambda name: name != "resources/runtime.zip")
+            # the runtime an FMU carries, and the kernels compiled for it, are for importers without
+            # this Python (python_embed.h): the model runs here on this process's own
+            extract(str(description.path), self._unzip_dir, include=_needed_in_process)
             # checked before it is loaded (Fmi3Library): a truncated binary would kill this process
             self._library = Fmi3Library.from_extracted(self._unzip_dir, description.model_identifier,
                                                        required_functions(self.ports))

@@ -177,14 +177,15 @@ def test_degenerate_mesh_file_gives_error_status(tissue_fmu, tmp_path):
 
 
 def test_ships_only_the_built_and_tested_binary(tissue_fmu):
-    """One platform, the binary the build compiled; it links to no libpython (found at run time)."""
+    """One platform, the binary the build compiled and the helper process's executable (where the
+    importer's Python cannot run the model); neither links to libpython (found at run time)."""
     import subprocess
 
     with zipfile.ZipFile(tissue_fmu) as archive:
-        binaries = [n for n in archive.namelist() if n.startswith("binaries/") and not n.endswith("/")]
-        assert binaries == ["binaries/x86_64-linux/Tissue.so"]
-        library = archive.read(binaries[0])
-    path = tissue_fmu.parent / "Tissue_check.so"
-    path.write_bytes(library)
-    needed = subprocess.run(["readelf", "-d", str(path)], capture_output=True, text=True).stdout
-    assert "NEEDED" in needed and "libpython" not in needed
+        binaries = sorted(n for n in archive.namelist() if n.startswith("binaries/") and not n.endswith("/"))
+        assert binaries == ["binaries/x86_64-linux/Tissue.so", "binaries/x86_64-linux/aaa_cosim_helper"]
+        for name in binaries:
+            path = tissue_fmu.parent / f"check_{name.rpartition('/')[2]}"
+            path.write_bytes(archive.read(name))
+            needed = subprocess.run(["readelf", "-d", str(path)], capture_output=True, text=True).stdout
+            assert "NEEDED" in needed and "libpython" not in needed, name

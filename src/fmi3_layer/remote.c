@@ -367,11 +367,15 @@ fmi3Status remote_get(fmi3Instance instance, int type, const fmi3ValueReference 
     put_u64(&c, n_values);
     put_u64(&c, values != NULL);
     fmi3Status status = call(r, OP_GET, &c);
-    if (status == fmi3OK || status == fmi3Warning) {
+    if ((status == fmi3OK || status == fmi3Warning) && values) {
         Cursor answer = reader(r->ch);
         size_t n;
         const void *data = take_bytes(&answer, &n);
-        if (data && values && n == n_values * type_size(type)) memcpy(values, data, n);
+        if (!data || n != n_values * type_size(type)) {
+            say(r, fmi3Error, "the helper process answered a get with %zu bytes for %zu values", n, n_values);
+            return fmi3Error;
+        }
+        memcpy(values, data, n);
     }
     return status;
 }
