@@ -456,24 +456,47 @@ def add_carried_kernels(fmus: list[Path], quiet: bool = False) -> None:
     of compiling (Contact: ~30 s). They are compiled by running the default scene once with those
     FMUs, once per version of the sources (the cache is content-addressed, build/numba-carried);
     an FMU built after that has them already (_write_carried_kernels)."""
+    finish_carried_kernels(start_carried_kernels(fmus, quiet))
+
+
+@dataclass
+class _CarriedKernelJob:
+    fmus: list[Path]
+    compiling: subprocess.Popen | None  # the default scene run that compiles them, when needed
+
+
+def start_carried_kernels(fmus: list[Path], quiet: bool = False) -> _CarriedKernelJob | None:
+    """add_carried_kernels in two halves, so that other work can run while the kernels compile:
+    this starts the compiling run (when needed); finish_carried_kernels waits and adds them."""
     specs = {spec.model_identifier: spec for spec in FMU_SPECS.values()}
     fmus = [f for f in fmus if f.stem in specs and _entries(f, "resources/runtime.id")
             and not _entries(f, "resources/numba_cache/")]
     if not fmus:
-        return
+        return None
+    compiling = None
     if any(not _carried_kernel_folders(specs[f.stem], CARRIED_KERNELS) for f in fmus):
         if not quiet:
             print("compiling the kernels the FMUs carry (once per source version) ...", flush=True)
         code = "import sys; from orchestration.build import _warm_run; sys.exit(_warm_run(sys.argv[1]))"
         env = {**os.environ, "NUMBA_CPU_NAME": "generic", "AAA_COSIM_NUMBA_CACHE": str(CARRIED_KERNELS)}
         env.pop("NUMBA_CPU_FEATURES", None)
-        result = subprocess.run([sys.executable, "-c", code, str(fmus[0].parent)], cwd=str(REPO_ROOT), env=env,
-                                capture_output=True, text=True)
-        if result.returncode != 0:
+        compiling = subprocess.Popen([sys.executable, "-c", code, str(fmus[0].parent)], cwd=str(REPO_ROOT), env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return _CarriedKernelJob(fmus, compiling)
+
+
+def finish_carried_kernels(job: _CarriedKernelJob | None) -> None:
+    """The second half of add_carried_kernels (see start_carried_kernels)."""
+    if job is None:
+        return
+    if job.compiling is not None:
+        out, err = job.compiling.communicate()
+        if job.compiling.returncode != 0:
             logger.warning("compiling the kernels the FMUs carry failed (their first load elsewhere compiles them): %s",
-                           (result.stderr or result.stdout).strip()[-2000:])
+                           (err or out).strip()[-2000:])
             return
-    for fmu in fmus:
+    specs = {spec.model_identifier: spec for spec in FMU_SPECS.values()}
+    for fmu in job.fmus:
         partial = fmu.with_name(f".{fmu.name}.kernels.partial")
         shutil.copyfile(fmu, partial)
         with zipfile.ZipFile(partial, "a", zipfile.ZIP_DEFLATED) as archive:
@@ -561,12 +584,16 @@ def ensure_fmus_built(quiet: bool = False) -> None:
             except BuildError as exc:
                 raise BuildError(f"fmus/{name}.fmu is missing or older than its sources and cannot be built: "
                                  f"{exc}") from None
-    add_carried_kernels(sorted(DEFAULT_FMU_DIR.glob("*.fmu")), quiet=quiet)
-    try:  # the master's compiled loop, so that the first run does not compile it while it is timed
-        compiled_loop_library()
-    except BuildError as exc:
-        logger.warning("%s; runs make every step from Python", exc)
-    warm_numba_cache(quiet)
+    # the kernels the FMUs carry compile in another process while this CPU's are warmed (2 cores)
+    carried = start_carried_kernels(sorted(DEFAULT_FMU_DIR.glob("*.fmu")), quiet=quiet)
+    try:
+        try:  # the master's compiled loop, so that the first run does not compile it while it is timed
+            compiled_loop_library()
+        except BuildError as exc:
+            logger.warning("%s; runs make every step from Python", exc)
+        warm_numba_cache(quiet)
+    finally:
+        finish_carried_kernels(carried)
 
 
 def _numba_cache_root() -> Path:
@@ -649,6 +676,18 @@ def numba_cache_damage(root: Path) -> str | None:
             f"Delete {what} (`rm -rf {command}`) and run again: the kernels compile again, once")
 
 
+def _fmu_set_digest(fmus: list[Path]) -> str:
+    """What the FMUs' kernels depend on: every entry's name, size and CRC (from the archives'
+    directories, nothing inflated) but the kernels the FMUs carry for other machines."""
+    digest = hashlib.sha256()
+    for fmu in fmus:
+        with zipfile.ZipFile(fmu) as archive:
+            for entry in archive.infolist():
+                if not entry.filename.startswith("resources/numba_cache/"):
+                    digest.update(f"{fmu.name}:{entry.filename}:{entry.file_size}:{entry.CRC}\n".encode())
+    return digest.hexdigest()[:16]
+
+
 def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
     """Compile the FMUs' kernels into the numba cache by running the default scene once.
 
@@ -666,10 +705,13 @@ def warm_numba_cache(quiet: bool = False, dest: Path = DEFAULT_FMU_DIR) -> bool:
     if damage:
         raise BuildError(damage)
     try:
-        digest = hashlib.sha256(b"".join(p.name.encode() + p.read_bytes() for p in fmus)).hexdigest()[:16]
+        digest = _fmu_set_digest(fmus)
     except OSError as exc:
         raise BuildError(f"cannot read the FMU {exc.filename} ({exc.strerror or exc}): rebuild the FMUs with "
                          "`python -m orchestration build`, as a user who may write and read them") from None
+    except zipfile.BadZipFile as exc:
+        raise BuildError(f"an FMU in {dest} is not a complete archive ({exc}): rebuild the FMUs with "
+                         "`python -m orchestration build`") from None
     stamp = root / f"warmed-{digest}"
     if stamp.exists():
         return False

@@ -15,6 +15,7 @@ the runs are logged (``pytest -o log_cli=true --log-cli-level=INFO`` shows them)
 """
 from __future__ import annotations
 
+import io
 import logging
 import math
 import shutil
@@ -139,3 +140,40 @@ def test_the_clean_system_has_no_python_and_runs_see_no_environment(rootfs):
     environment = dict(line.split("=", 1) for line in result.stdout.splitlines())
     assert environment.keys() == {"HOME", "LANG", "PATH"}, result.stdout
     assert environment["PATH"] == "/usr/bin:/bin" and environment["HOME"].startswith("/tmp/run-"), result.stdout
+
+
+def _with_runtime(fmu: Path, out: Path, change) -> Path:
+    """A copy of ``fmu`` whose resources/runtime.zip is ``change(bytes)``, everything else as built."""
+    with zipfile.ZipFile(fmu) as source, zipfile.ZipFile(out, "w") as copy:
+        for entry in source.infolist():
+            data = source.read(entry)
+            if entry.filename == "resources/runtime.zip":
+                data = change(data)
+            copy.writestr(entry, data)
+    return out
+
+
+def _flip_inside_an_entry(data: bytes) -> bytes:
+    """One bit flipped in the compressed data of the archive's largest entry (its CRC must catch it)."""
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        largest = max(archive.infolist(), key=lambda e: e.compress_size)
+    at = largest.header_offset + 30 + len(largest.filename.encode()) + largest.compress_size // 2 + 64
+    return data[:at] + bytes([data[at] ^ 0x10]) + data[at + 1:]
+
+
+@pytest.mark.parametrize("damage, words", [
+    (_flip_inside_an_entry, "damaged"),
+    (lambda data: data[: len(data) // 2], "not a complete runtime archive"),
+])
+def test_a_damaged_runtime_is_refused_at_instantiation_with_the_reason(damage, words, c_host, fmus, tmp_path):
+    """The runtime crosses a trust boundary (an FMU file handed around): a flipped bit or a truncated
+    archive fails fmi3InstantiateCoSimulation with a log line that says so and what to do, nothing
+    half-unpacked stays in the cache, and the importer exits normally."""
+    fmu = _with_runtime(fmus["Catheter"], tmp_path / "Catheter.fmu", damage)
+    result = _run_here(c_host, fmu, _arguments("Catheter", fmu), tmp_path)
+    assert result.returncode >= 0, result.stderr[-2000:]  # not killed by a signal
+    assert "run completed" not in result.stdout
+    output = result.stdout + result.stderr
+    assert words in output and "build it again" in output, output[-2000:]
+    cache = tmp_path / "home" / ".cache" / "aaa-cosim" / "runtime"
+    assert not cache.exists() or not any(cache.iterdir()), list(cache.iterdir())
