@@ -342,9 +342,13 @@ fmi3Status remote_simple(fmi3Instance instance, int op) {
     return call(r, OP_SIMPLE, &c);
 }
 
-static void put_references(Cursor *c, const fmi3ValueReference vrs[], size_t n) {
-    put_u64(c, vrs ? n : 0);
-    if (vrs) put(c, vrs, n * sizeof *vrs);
+/* The start of every get and set request: the value references, nValues, whether values are given
+ * (read back by take_access). */
+static void put_access(Cursor *c, const fmi3ValueReference vrs[], size_t n_vrs, size_t n_values, int with_values) {
+    put_u64(c, vrs ? n_vrs : 0);
+    if (vrs) put(c, vrs, n_vrs * sizeof *vrs);
+    put_u64(c, n_values);
+    put_u64(c, (uint64_t)with_values);
 }
 
 static size_t type_size(int type) {
@@ -363,9 +367,7 @@ fmi3Status remote_get(fmi3Instance instance, int type, const fmi3ValueReference 
     Remote *r = instance;
     Cursor c = writer(r->ch);
     put_u64(&c, (uint64_t)type);
-    put_references(&c, vrs, n_vrs);
-    put_u64(&c, n_values);
-    put_u64(&c, values != NULL);
+    put_access(&c, vrs, n_vrs, n_values, values != NULL);
     fmi3Status status = call(r, OP_GET, &c);
     if ((status == fmi3OK || status == fmi3Warning) && values) {
         Cursor answer = reader(r->ch);
@@ -385,9 +387,7 @@ fmi3Status remote_set(fmi3Instance instance, int type, const fmi3ValueReference 
     Remote *r = instance;
     Cursor c = writer(r->ch);
     put_u64(&c, (uint64_t)type);
-    put_references(&c, vrs, n_vrs);
-    put_u64(&c, n_values);
-    put_u64(&c, values != NULL);
+    put_access(&c, vrs, n_vrs, n_values, values != NULL);
     if (values) put(&c, values, n_values * type_size(type));
     return call(r, OP_SET, &c);
 }
@@ -413,9 +413,7 @@ fmi3Status remote_get_string(fmi3Instance instance, const fmi3ValueReference vrs
                              size_t n_values) {
     Remote *r = instance;
     Cursor c = writer(r->ch);
-    put_references(&c, vrs, n_vrs);
-    put_u64(&c, n_values);
-    put_u64(&c, values != NULL);
+    put_access(&c, vrs, n_vrs, n_values, values != NULL);
     fmi3Status status = call(r, OP_GET_STRING, &c);
     if ((status == fmi3OK || status == fmi3Warning) && values) {
         Cursor answer = reader(r->ch);
@@ -428,9 +426,7 @@ fmi3Status remote_set_string(fmi3Instance instance, const fmi3ValueReference vrs
                              const fmi3String values[], size_t n_values) {
     Remote *r = instance;
     Cursor c = writer(r->ch);
-    put_references(&c, vrs, n_vrs);
-    put_u64(&c, values ? n_values : 0);
-    put_u64(&c, values != NULL);
+    put_access(&c, vrs, n_vrs, values ? n_values : 0, values != NULL);
     for (size_t i = 0; values && i < n_values; i++) {
         put_u64(&c, values[i] != NULL);
         put_str(&c, values[i]);
@@ -442,9 +438,7 @@ fmi3Status remote_get_binary(fmi3Instance instance, const fmi3ValueReference vrs
                              fmi3Binary values[], size_t n_values) {
     Remote *r = instance;
     Cursor c = writer(r->ch);
-    put_references(&c, vrs, n_vrs);
-    put_u64(&c, n_values);
-    put_u64(&c, values != NULL && sizes != NULL);
+    put_access(&c, vrs, n_vrs, n_values, values != NULL && sizes != NULL);
     fmi3Status status = call(r, OP_GET_BINARY, &c);
     if ((status == fmi3OK || status == fmi3Warning) && values && sizes) {
         Cursor answer = reader(r->ch);
@@ -457,9 +451,7 @@ fmi3Status remote_set_binary(fmi3Instance instance, const fmi3ValueReference vrs
                              const fmi3Binary values[], size_t n_values) {
     Remote *r = instance;
     Cursor c = writer(r->ch);
-    put_references(&c, vrs, n_vrs);
-    put_u64(&c, values && sizes ? n_values : 0);
-    put_u64(&c, values != NULL && sizes != NULL);
+    put_access(&c, vrs, n_vrs, values && sizes ? n_values : 0, values != NULL && sizes != NULL);
     for (size_t i = 0; values && sizes && i < n_values; i++) put_bytes(&c, values[i], values[i] ? sizes[i] : 0);
     return call(r, OP_SET_BINARY, &c);
 }
@@ -587,15 +579,30 @@ static void log_into_channel(fmi3InstanceEnvironment environment, fmi3Status sta
     if (!c.overflow) served->log_length += (uint64_t)(c.at - start);
 }
 
+/* What put_access wrote. */
+typedef struct {
+    const fmi3ValueReference *vrs;
+    size_t n_vrs, n_values;
+    int with_values;
+} Access;
+
+static Access take_access(Cursor *in) {
+    Access a;
+    a.n_vrs = take_u64(in);
+    a.vrs = a.n_vrs ? take(in, a.n_vrs * sizeof *a.vrs) : NULL;
+    a.n_values = take_u64(in);
+    a.with_values = (int)take_u64(in);
+    return a;
+}
+
 static fmi3Status serve_get(fmi3Instance inst, Cursor *in, Cursor *out) {
     int type = (int)take_u64(in);
-    size_t n_vrs = take_u64(in);
-    const fmi3ValueReference *vrs = n_vrs ? take(in, n_vrs * sizeof *vrs) : NULL;
-    size_t n_values = take_u64(in);
-    int with_values = (int)take_u64(in);
+    Access a = take_access(in);
     size_t size = type_size(type);
-    if (in->overflow || !size || n_values > PAYLOAD_BYTES / size) return fmi3Error;
-    void *values = with_values ? malloc(n_values * size + 1) : NULL;
+    if (in->overflow || !size || a.n_values > (PAYLOAD_BYTES - 16) / size) return fmi3Error;
+    const fmi3ValueReference *vrs = a.vrs;
+    size_t n_vrs = a.n_vrs, n_values = a.n_values;
+    void *values = a.with_values ? out->at + 8 : NULL; /* read into the answer, after its length */
     fmi3Status status;
     switch (type) {
 #define GET(T, Name) case T: status = fmi3Get##Name(inst, vrs, n_vrs, values, n_values); break;
@@ -605,21 +612,21 @@ static fmi3Status serve_get(fmi3Instance inst, Cursor *in, Cursor *out) {
 #undef GET
         default: status = fmi3Error;
     }
-    put_bytes(out, values, values && (status == fmi3OK || status == fmi3Warning) ? n_values * size : 0);
-    free(values);
+    size_t answered = values && (status == fmi3OK || status == fmi3Warning) ? n_values * size : 0;
+    put_u64(out, answered);
+    out->at += answered;
     return status;
 }
 
 static fmi3Status serve_set(fmi3Instance inst, Cursor *in) {
     int type = (int)take_u64(in);
-    size_t n_vrs = take_u64(in);
-    const fmi3ValueReference *vrs = n_vrs ? take(in, n_vrs * sizeof *vrs) : NULL;
-    size_t n_values = take_u64(in);
-    int with_values = (int)take_u64(in);
+    Access a = take_access(in);
     size_t size = type_size(type);
-    if (in->overflow || !size || n_values > PAYLOAD_BYTES / size) return fmi3Error;
-    const void *values = with_values ? take(in, n_values * size) : NULL;
+    if (in->overflow || !size || a.n_values > PAYLOAD_BYTES / size) return fmi3Error;
+    const void *values = a.with_values ? take(in, a.n_values * size) : NULL;
     if (in->overflow) return fmi3Error;
+    const fmi3ValueReference *vrs = a.vrs;
+    size_t n_vrs = a.n_vrs, n_values = a.n_values;
     switch (type) {
 #define SET(T, Name) case T: return fmi3Set##Name(inst, vrs, n_vrs, values, n_values);
         SET(T_FLOAT64, Float64) SET(T_FLOAT32, Float32) SET(T_INT8, Int8) SET(T_UINT8, UInt8) SET(T_INT16, Int16)
@@ -668,16 +675,14 @@ static fmi3Status serve_one(fmi3Instance *inst, uint32_t op, Cursor *in, Cursor 
         case OP_GET: return serve_get(*inst, in, out);
         case OP_SET: return serve_set(*inst, in);
         case OP_GET_STRING: case OP_GET_BINARY: {
-            size_t n_vrs = take_u64(in);
-            const fmi3ValueReference *vrs = n_vrs ? take(in, n_vrs * sizeof *vrs) : NULL;
-            size_t n_values = take_u64(in);
-            int with_values = (int)take_u64(in);
+            Access a = take_access(in);
+            size_t n_values = a.n_values;
             if (in->overflow || n_values > PAYLOAD_BYTES / 16) return fmi3Error;
-            const void **values = with_values ? calloc(n_values + 1, sizeof *values) : NULL;
-            size_t *sizes = with_values ? calloc(n_values + 1, sizeof *sizes) : NULL;
+            const void **values = a.with_values ? calloc(n_values + 1, sizeof *values) : NULL;
+            size_t *sizes = a.with_values ? calloc(n_values + 1, sizeof *sizes) : NULL;
             fmi3Status status = op == OP_GET_STRING
-                ? fmi3GetString(*inst, vrs, n_vrs, (fmi3String *)values, n_values)
-                : fmi3GetBinary(*inst, vrs, n_vrs, sizes, (fmi3Binary *)values, n_values);
+                ? fmi3GetString(*inst, a.vrs, a.n_vrs, (fmi3String *)values, n_values)
+                : fmi3GetBinary(*inst, a.vrs, a.n_vrs, sizes, (fmi3Binary *)values, n_values);
             for (size_t i = 0; values && (status == fmi3OK || status == fmi3Warning) && i < n_values; i++) {
                 if (op == OP_GET_STRING) put_str(out, values[i]);
                 else put_bytes(out, values[i], values[i] ? sizes[i] : 0);
@@ -687,13 +692,11 @@ static fmi3Status serve_one(fmi3Instance *inst, uint32_t op, Cursor *in, Cursor 
             return status;
         }
         case OP_SET_STRING: case OP_SET_BINARY: {
-            size_t n_vrs = take_u64(in);
-            const fmi3ValueReference *vrs = n_vrs ? take(in, n_vrs * sizeof *vrs) : NULL;
-            size_t n_values = take_u64(in);
-            int with_values = (int)take_u64(in);
+            Access a = take_access(in);
+            size_t n_values = a.n_values;
             if (in->overflow || n_values > PAYLOAD_BYTES / 16) return fmi3Error;
-            const void **values = with_values ? calloc(n_values + 1, sizeof *values) : NULL;
-            size_t *sizes = with_values ? calloc(n_values + 1, sizeof *sizes) : NULL;
+            const void **values = a.with_values ? calloc(n_values + 1, sizeof *values) : NULL;
+            size_t *sizes = a.with_values ? calloc(n_values + 1, sizeof *sizes) : NULL;
             for (size_t i = 0; values && i < n_values; i++) {
                 if (op == OP_SET_STRING) {
                     int present = (int)take_u64(in);
@@ -704,8 +707,8 @@ static fmi3Status serve_one(fmi3Instance *inst, uint32_t op, Cursor *in, Cursor 
                 }
             }
             fmi3Status status = in->overflow ? fmi3Error
-                : op == OP_SET_STRING ? fmi3SetString(*inst, vrs, n_vrs, (const fmi3String *)values, n_values)
-                : fmi3SetBinary(*inst, vrs, n_vrs, sizes, (const fmi3Binary *)values, n_values);
+                : op == OP_SET_STRING ? fmi3SetString(*inst, a.vrs, a.n_vrs, (const fmi3String *)values, n_values)
+                : fmi3SetBinary(*inst, a.vrs, a.n_vrs, sizes, (const fmi3Binary *)values, n_values);
             free(values);
             free(sizes);
             return status;
