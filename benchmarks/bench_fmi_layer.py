@@ -39,7 +39,8 @@ import numpy as np
 # imported first: the host's own copies (the FMUs import theirs under other names)
 from catheter_fmu.model import CatheterModel, CatheterParameters
 from haptic_fmu.model import ContactModel, ContactParameters
-from orchestration.build import DEFAULT_FMU_DIR, build_fmu, fmu_is_stale
+from fmu_build.paths import DEFAULT_FMU_DIR
+from fmu_build.package import build_fmu, fmu_is_stale
 from tissue_fmu.mesh import aaa_mesh
 
 DT = 1e-3

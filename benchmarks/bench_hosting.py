@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestration.build import FmuSpec, build_fmu, build_fmu_from_spec
-from orchestration.hosting import InProcessFmu
-from orchestration.ports import read_fmu
-from orchestration.worker import WorkerFmu
+from fmu_build.specs import FmuSpec
+from fmu_build.package import build_fmu, build_fmu_from_spec
+from orchestration.hosts.in_process import InProcessFmu
+from orchestration.hosts.description import read_fmu
+from orchestration.hosts.worker import WorkerFmu
 
 REPO = Path(__file__).resolve().parent.parent
 CONTACT_OUTPUTS = ["tool_force", "tip_force", "tissue_contact_force", "penetration_depth", "contact_energy",

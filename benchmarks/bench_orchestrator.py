@@ -47,7 +47,7 @@ def direct_loop(duration: float) -> float:
     from tissue_fmu.mesh import aaa_mesh
     from tissue_fmu.model import TissueModel, TissueParameters
 
-    from orchestration.scene import load_scene
+    from orchestration.scene.loading import load_scene
 
     # The scene's own settings, so that both sides do the same work.
     scene = load_scene("aaa_endovascular").components
@@ -120,8 +120,8 @@ def direct_loop(duration: float) -> float:
 
 
 def orchestrated(duration: float, hosting: str, compiled_loop: bool = True) -> dict:
-    from orchestration.master import run_scene
-    from orchestration.scene import load_scene
+    from orchestration.run.simulation import run_scene
+    from orchestration.scene.loading import load_scene
 
     scene = load_scene("aaa_endovascular", {"duration": duration})
     with tempfile.TemporaryDirectory() as tmp:
@@ -141,7 +141,7 @@ def main() -> None:
     import catheter_fmu.model  # noqa: F401
     import haptic_fmu.model  # noqa: F401
     import tissue_fmu.model  # noqa: F401
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
     orchestrated(0.1, "in-process")  # the FMU extraction path, imports

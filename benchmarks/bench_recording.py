@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestration.recording import Recorder, read_stream
-from orchestration.row_writer import RowWriter
+from orchestration.observers.recorder import Recorder, read_stream
+from orchestration.observers.row_writer import RowWriter
 
 N_ROWS = 20_000
 

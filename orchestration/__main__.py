@@ -6,11 +6,11 @@ import sys
 # First of all: from here on Ctrl-C and SIGTERM set a flag that the run checks between ticks,
 # so that no KeyboardInterrupt can land inside an FMU call or cut the summary short
 # (orchestration.stopping). Commands other than "run" give the signals back once parsed.
-from . import stopping
+from orchestration import stopping
 
 stopping.install()
 
-from .cli import main  # noqa: E402 (after the handlers, on purpose)
+from orchestration.app.cli import main  # noqa: E402 (after the handlers, on purpose)
 
 try:
     code = main()

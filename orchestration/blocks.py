@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .ports import MAX_PORT_VALUES, PortInfo
+from orchestration.hosts.description import MAX_PORT_VALUES, PortInfo
 
 try:
-    from .errors import FmuCallError
+    from orchestration.errors import FmuCallError
 except ImportError:  # errors.py is written in parallel; same constructor and attributes
     class FmuCallError(RuntimeError):
         """A component call failed (local stand-in for orchestration.errors.FmuCallError)."""

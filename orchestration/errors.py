@@ -83,4 +83,4 @@ class WorkerCrash(FmuCallError):
 class FmuBinaryError(OrchestrationError):
     """An FMU's binary cannot be loaded into a process (truncated, for another machine, missing FMI
     functions); found by reading it as data before ``dlopen``, which a truncated binary would kill
-    with SIGBUS. The message names the file and the fix (``orchestration.fmi3.BINARY_FIX``)."""
+    with SIGBUS. The message names the file and the fix (``orchestration.hosts.fmi3.BINARY_FIX``)."""

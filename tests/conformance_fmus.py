@@ -21,7 +21,7 @@ import tempfile
 import zipfile
 from pathlib import Path
 
-from orchestration.fmi3 import platform_tuple
+from orchestration.hosts.fmi3 import platform_tuple
 
 SOURCES = Path(__file__).resolve().parent / "conformance"
 INCLUDE = Path(__file__).resolve().parent.parent / "src" / "fmi3_layer" / "include"

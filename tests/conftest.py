@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
-from orchestration.build import build_fmu
+from fmu_build.package import build_fmu
 
 # Fuzzers (tests/test_fuzz_*.py) run a bounded number of cases in CI and many more on demand:
 #     pytest tests/test_fuzz_*.py --hypothesis-profile=long
@@ -71,7 +71,8 @@ def c_host(tmp_path_factory) -> Path:
 
 
 # -- synthetic FMUs for the orchestrator's host tests (tests/synthetic/synthetic_fmu) ------------
-from orchestration.build import FmuSpec, build_fmu_from_spec  # noqa: E402
+from fmu_build.specs import FmuSpec
+from fmu_build.package import build_fmu_from_spec  # noqa: E402
 
 SYNTHETIC_ROOT = Path(__file__).resolve().parent / "synthetic"
 

@@ -4,8 +4,8 @@ duration, read its 1 kHz traces back, and judge them.
 Why a harness of its own: the scripted motions of the shipped scenes are one slow push each, and
 the haptic defects (phantom forces, force steps, alternation, energy created at the port) show up
 under other hands: faster pushes, taps, slides, rolls, dead stops, stiffer devices. This module
-builds the modified scene as a dict from the shipped TOML (``orchestration.scene.scene_from_dict``,
-nothing monkeypatched), runs it in-process with ``orchestration.master.run_scene`` and returns a
+builds the modified scene as a dict from the shipped TOML (``orchestration.scene.loading.scene_from_dict``,
+nothing monkeypatched), runs it in-process with ``orchestration.run.simulation.run_scene`` and returns a
 :class:`Trace`. The judges return lists of readable violations (time, values, allowance), empty
 when the trace passes, so that a failing test says exactly what happened.
 
@@ -36,9 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestration.master import run_scene
-from orchestration.recording import read_stream
-from orchestration.scene import SCENE_DIR, scene_from_dict
+from orchestration.run.simulation import run_scene
+from orchestration.observers.recorder import read_stream
+from fmu_build.paths import SCENE_DIR
+from orchestration.scene.loading import scene_from_dict
 
 DT = 0.001  # s: the haptic step of every contact scene
 

@@ -18,10 +18,11 @@ from hypothesis import assume, event, given, note, settings
 from hypothesis import strategies as st
 
 from conformance_fmus import build_all
-from orchestration.master import Simulation
-from orchestration.recording import read_stream
-from orchestration.scene import SceneError, load_scene, scene_from_dict
-from orchestration.transitions import Average
+from orchestration.run.simulation import Simulation
+from orchestration.observers.recorder import read_stream
+from orchestration.scene.model import SceneError
+from orchestration.scene.loading import load_scene, scene_from_dict
+from orchestration.plan.transitions import Average
 
 STATISTICS = ("peaks", "energy", "operator_warnings")
 
@@ -29,7 +30,7 @@ STATISTICS = ("peaks", "energy", "operator_warnings")
 @pytest.fixture(scope="module")
 def built(tissue_fmu, contact_fmu, catheter_fmu):
     """The shipped scenes use fmus/: build them from this checkout first."""
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 
@@ -292,7 +293,7 @@ def test_random_multirate_scenes_run_compiled_as_in_python(conformance_fmus, tmp
 def test_programs_made_afresh_for_each_stretch_give_the_same_run(built, tmp_path, monkeypatch):
     """Past its budget of kept programs (a rate mix with many schedule states) each stretch gets a
     new program: the same run."""
-    from orchestration import compiled_loop
+    from orchestration.run import compiled_loop
 
     monkeypatch.setattr(compiled_loop, "PROGRAM_CACHE_OPS", 0)
     scene = load_scene("aaa_endovascular", {"duration": 0.5})

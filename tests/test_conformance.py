@@ -18,13 +18,14 @@ import pytest
 
 from conformance_fmus import build_all
 from orchestration.errors import FMI_ERROR, FmuCallError
-from orchestration.fmi3 import Fmi3Instance, Fmi3Library, resource_path
-from orchestration.hosting import InProcessFmu, PortConfigurationError
-from orchestration.master import run_scene
-from orchestration.ports import read_fmu
-from orchestration.recording import read_stream
-from orchestration.scene import SceneError, scene_from_dict
-from orchestration.worker import WorkerFmu
+from orchestration.hosts.fmi3 import Fmi3Instance, Fmi3Library, resource_path
+from orchestration.hosts.in_process import InProcessFmu, PortConfigurationError
+from orchestration.run.simulation import run_scene
+from orchestration.hosts.description import read_fmu
+from orchestration.observers.recorder import read_stream
+from orchestration.scene.model import SceneError
+from orchestration.scene.loading import scene_from_dict
+from orchestration.hosts.worker import WorkerFmu
 
 HOSTS = {"in_process": InProcessFmu, "worker": WorkerFmu}
 

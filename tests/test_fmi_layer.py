@@ -307,7 +307,8 @@ def test_two_builds_of_one_fmu_in_one_process_each_run_their_own_code(synthetic_
     import shutil
     from pathlib import Path
 
-    from orchestration.build import FmuSpec, build_fmu_from_spec
+    from fmu_build.specs import FmuSpec
+    from fmu_build.package import build_fmu_from_spec
 
     source = tmp_path / "src" / "synthetic_fmu"
     shutil.copytree(Path(__file__).resolve().parent / "synthetic" / "synthetic_fmu", source, symlinks=False,
@@ -384,8 +385,8 @@ def test_fmu_state_restores_bit_identically(name, catheter_fmu, contact_fmu, tis
 _PRELOAD_PROBE = r"""
 import json, sys
 from numba.core.registry import CPUDispatcher
-from orchestration.hosting import InProcessFmu
-from orchestration.ports import read_fmu
+from orchestration.hosts.in_process import InProcessFmu
+from orchestration.hosts.description import read_fmu
 
 description = read_fmu(sys.argv[1], {"n_tool_points": 1})  # a probe: port sizes for one point
 

@@ -1,6 +1,6 @@
 """Fuzzing the command line (issue 14): random argument lists for ``validate``, ``run`` and ``study``.
 
-Whatever the arguments: no traceback, and the exit code means what ``orchestration.cli`` documents:
+Whatever the arguments: no traceback, and the exit code means what ``orchestration.app.cli`` documents:
 0 the command did what was asked (a run completed, its summary in the requested ``--out``), 1 a
 run started and failed, 2 nothing ran (a usage or scene error, ``error: ...`` on stderr).
 
@@ -30,8 +30,8 @@ import pytest
 from hypothesis import event, given, note
 from hypothesis import strategies as st
 
-from orchestration import cli
-from orchestration.scene import SCENE_DIR
+from orchestration.app import cli
+from fmu_build.paths import SCENE_DIR
 
 REPO = Path(__file__).resolve().parent.parent
 CHEAP_SCENE = "virtual_wall"  # one FMU and a device block at 1 kHz: the cheapest shipped scene to run
@@ -40,7 +40,7 @@ _counter = itertools.count()
 
 @pytest.fixture(scope="module")
 def fmus_in_repo():
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 
@@ -189,7 +189,7 @@ def test_run_with_random_arguments_exits_0_only_with_a_completed_run_in_out(work
 @pytest.fixture
 def study_stub(monkeypatch):
     """run_study replaced by a recorder: the arguments are what is tested, not the studies."""
-    import orchestration.build
+    import orchestration.app.warmup
     import orchestration.studies
 
     calls = []
@@ -199,7 +199,7 @@ def study_stub(monkeypatch):
         return 0
 
     monkeypatch.setattr(orchestration.studies, "run_study", fake_run_study)
-    monkeypatch.setattr(orchestration.build, "ensure_fmus_built", lambda quiet=False: None)
+    monkeypatch.setattr(orchestration.app.warmup, "ensure_fmus_built", lambda quiet=False: None)
     return calls
 
 

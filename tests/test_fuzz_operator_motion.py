@@ -129,7 +129,7 @@ def operator_cases(draw, scene: str):
 @pytest.fixture(scope="module")
 def built(tissue_fmu, contact_fmu, catheter_fmu):
     """The scenes use fmus/: build them from this checkout first (as tests/test_runs.py does)."""
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 

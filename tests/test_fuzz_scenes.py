@@ -28,9 +28,11 @@ import pytest
 from hypothesis import given, note
 from hypothesis import strategies as st
 
-from orchestration import cli
-from orchestration.scene import (_COMPONENT_NAME, _FILE_NAME, _SCENE_NAME, MAX_RUN_STEPS, MAX_STEP, MIN_STEP,
-                                 SCENE_DIR, Scene, SceneError, load_scene, scene_from_dict)
+from orchestration.app import cli
+from orchestration.scene.text import _COMPONENT_NAME, FILE_NAME, _SCENE_NAME
+from orchestration.scene.model import MAX_RUN_STEPS, MAX_STEP, MIN_STEP, Scene, SceneError
+from fmu_build.paths import SCENE_DIR
+from orchestration.scene.loading import load_scene, scene_from_dict
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = ("aaa_endovascular", "virtual_wall", "tissue_indentation", "catheter_tube")
@@ -41,7 +43,8 @@ pytestmark = pytest.mark.usefixtures("fmus_in_repo")
 @pytest.fixture(scope="module")
 def fmus_in_repo():
     """The shipped scenes name Tissue.fmu etc., looked up in fmus/: build them there if missing."""
-    from orchestration.build import available_fmus, build_fmu, fmu_is_stale
+    from fmu_build.specs import available_fmus
+    from fmu_build.package import build_fmu, fmu_is_stale
 
     for name in available_fmus():
         if fmu_is_stale(name):
@@ -168,9 +171,9 @@ def assert_sound(scene: Scene) -> None:
         assert len(ports) == len(set(ports)), ports
         assert all(p in scene.components[component].ports for p in ports)
     for surface in scene.surfaces:
-        assert _FILE_NAME.fullmatch(surface.name)
+        assert FILE_NAME.fullmatch(surface.name)
     for figure in scene.plots:
-        assert _FILE_NAME.fullmatch(figure["file"]) and figure["file"].endswith(".png")
+        assert FILE_NAME.fullmatch(figure["file"]) and figure["file"].endswith(".png")
 
 
 LOCATED = re.compile(r"\[|connection|override|top level|the scene has no|algebraic loop|(fmu|source|block): "

@@ -52,7 +52,7 @@ EXIT_FOR = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 @pytest.fixture(scope="module")
 def built(tissue_fmu, contact_fmu, catheter_fmu):
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 
@@ -303,7 +303,7 @@ def test_a_stopped_worker_ends_the_run_as_failed_after_the_scene_timeout(built, 
 
 def test_the_automatic_worker_deadline_grows_with_the_slowest_recent_reply():
     from orchestration.stopping import DEADLINE_FLOOR, RecentSlowest
-    from orchestration.worker import WorkerFmu
+    from orchestration.hosts.worker import WorkerFmu
 
     host = WorkerFmu.__new__(WorkerFmu)
     host.reply_timeout, host.setup_timeout, host._in_setup = None, 600.0, True
@@ -352,8 +352,8 @@ def test_a_read_only_out_is_refused_and_its_results_kept(built, tmp_path, monkey
     argv = ["run", SCENE, "--duration", "0.1", "--out", str(out), "--no-vtu", "--quiet"]
     try:
         if os.geteuid() == 0:
-            from orchestration import outfolder
-            from orchestration.cli import main
+            from orchestration.app import result_folder as outfolder
+            from orchestration.app.cli import main
 
             real_access = os.access
             monkeypatch.setattr(outfolder.os, "access", lambda path, mode: (
@@ -378,8 +378,8 @@ def test_a_library_run_stops_cleanly_on_sigint_then_hands_the_keyboardinterrupt_
     and summary are written, and then the caller (a study's loop) gets its KeyboardInterrupt."""
     import threading
 
-    from orchestration.master import run_scene
-    from orchestration.scene import load_scene
+    from orchestration.run.simulation import run_scene
+    from orchestration.scene.loading import load_scene
 
     # The premise: a program with Python's own Ctrl-C handling. A background job of a
     # non-interactive shell (CI started with `&`) inherits SIGINT ignored, and a run rightly

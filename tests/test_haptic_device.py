@@ -225,7 +225,7 @@ def test_the_default_limits_never_engage_in_the_default_scene():
     """aaa_endovascular as shipped (4 s, the catheter into the sac at 1000 N/m): the force stays near
     0.6 N and changes by at most 0.011 N per step (measured), far inside 7.9 N and 10 N per step:
     force_limited never switches on and nothing is logged."""
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
     from orchestration.studies.common import run_point
 
     ensure_fmus_built(quiet=True)

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 from orchestration.errors import FmuCallError, WorkerCrash
-from orchestration.hosting import ComponentHost, InProcessFmu, PortConfigurationError
-from orchestration.ports import read_fmu
-from orchestration.worker import WorkerFmu
+from orchestration.hosts.in_process import ComponentHost, InProcessFmu, PortConfigurationError
+from orchestration.hosts.description import read_fmu
+from orchestration.hosts.worker import WorkerFmu
 
 HOSTS = {"in_process": InProcessFmu, "worker": WorkerFmu}
 H = 0.01  # the synthetic FMUs' communication step
@@ -320,9 +320,9 @@ def test_building_an_fmu_does_not_break_instances_loaded_in_this_process(contact
     """Regression (fresh-clone CI): a build inside a process that had loaded Contact.fmu replaced
     the package module the reused entry module refers to, and the next Contact instance failed
     with "No module named 'Contact_haptic_fmu'". Builds now run in a fresh interpreter."""
-    from orchestration.build import build_fmu
-    from orchestration.hosting import InProcessFmu
-    from orchestration.ports import read_fmu
+    from fmu_build.package import build_fmu
+    from orchestration.hosts.in_process import InProcessFmu
+    from orchestration.hosts.description import read_fmu
 
     def one_instance(path):
         host = InProcessFmu("contact", read_fmu(path))
@@ -349,8 +349,8 @@ def test_a_worker_that_dies_at_start_up_is_reported_not_waited_for(tissue_fmu, t
     values) is larger than a pipe's buffer: handing it to the starting process blocked forever."""
     script = tmp_path / "unguarded.py"
     script.write_text(textwrap.dedent(f"""
-        from orchestration.ports import read_fmu
-        from orchestration.worker import WorkerFmu
+        from orchestration.hosts.description import read_fmu
+        from orchestration.hosts.worker import WorkerFmu
 
         host = WorkerFmu("tissue", read_fmu({str(tissue_fmu)!r}))
         try:
@@ -372,7 +372,7 @@ def test_a_worker_that_dies_at_start_up_is_reported_not_waited_for(tissue_fmu, t
 
 
 def test_a_tissue_worker_factorises_on_one_thread(tissue_fmu, contact_fmu, monkeypatch):
-    """A worker caps native thread pools before it loads its FMU (orchestration.native_threads):
+    """A worker caps native thread pools before it loads its FMU (orchestration.hosts.native_threads):
     the tissue's CHOLMOD (the cholmod extra) would otherwise start 3 OpenMP threads and a BLAS
     pool in the worker, whose CPU a 2-core machine shares with the haptic loop. So a tissue worker
     that has factorised its wall and stepped runs as many threads as a contact worker. The master's
@@ -381,7 +381,7 @@ def test_a_tissue_worker_factorises_on_one_thread(tissue_fmu, contact_fmu, monke
 
     if not backend_available("scikit-sparse"):
         pytest.skip("scikit-sparse (the system's CHOLMOD) not installed")
-    from orchestration.native_threads import NATIVE_THREAD_LIMITS
+    from orchestration.hosts.native_threads import NATIVE_THREAD_LIMITS
 
     for name in NATIVE_THREAD_LIMITS:
         monkeypatch.delenv(name, raising=False)

@@ -13,8 +13,15 @@ from types import SimpleNamespace
 
 import pytest
 
-from orchestration import blocks, build, fmi3, scene
-from orchestration.ports import PortInfo
+from fmu_build import kernels, package, specs
+from fmu_build.errors import BuildError
+from orchestration import blocks
+from orchestration.app import warmup
+from orchestration.hosts import fmi3
+from orchestration.scene.loading import load_scene
+from orchestration.scene.model import SceneError
+from orchestration.scene.text import nesting_problem
+from orchestration.hosts.description import PortInfo
 
 ROOT = Path(__file__).resolve().parents[1]
 FMUS = ROOT / "fmus"
@@ -33,7 +40,8 @@ def test_deeply_dotted_key_is_refused_before_the_toml_parser(tmp_path):
     path = tmp_path / "dotted.toml"
     path.write_text(".".join(["x"] * 70_000) + " = 1\n")  # 140 KB; tomllib needed 24 GB for it
     proc = _python(f"""
-        from orchestration.scene import SceneError, load_scene
+        from orchestration.scene.loading import load_scene
+        from orchestration.scene.model import SceneError
         try:
             load_scene({str(path)!r})
         except SceneError as exc:
@@ -43,7 +51,7 @@ def test_deeply_dotted_key_is_refused_before_the_toml_parser(tmp_path):
     assert "REFUSED" in proc.stdout and "nested too deeply" in proc.stdout and "line 1" in proc.stdout
     # and the scenes of the project are not deeper than allowed
     for toml in (ROOT / "scenes").glob("*.toml"):
-        assert scene._nesting_problem(toml.read_text()) is None, toml
+        assert nesting_problem(toml.read_text()) is None, toml
 
 
 # 2 ------------------------------------------------------------------------------------------------
@@ -53,13 +61,13 @@ def test_control_characters_in_scene_strings_are_refused_naming_the_key(tmp_path
     path = tmp_path / "virtual_wall.toml"
     path.write_text(text.replace('tool = "probe"', 'tool = "probe\\u0000garbage"'))
     shutil.copy(FMUS / "Contact.fmu", tmp_path / "Contact.fmu")
-    with pytest.raises(scene.SceneError) as info:
-        scene.load_scene(path)
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
     message = str(info.value)
     assert "[fmu.contact] parameters.tool" in message and "NUL (U+0000)" in message
     # the unchanged scene loads
     path.write_text(text)
-    scene.load_scene(path)
+    load_scene(path)
 
 
 # 3 ------------------------------------------------------------------------------------------------
@@ -89,7 +97,7 @@ def test_implausible_output_makes_a_warning_and_a_count():
     ports = {"position": PortInfo("position", "output", "Float64", unit="m", shape=(3,)),
              "force": PortInfo("force", "output", "Float64", unit="N", shape=(3,))}
     spec = SimpleNamespace(name="device", is_continuous=False, ports=ports)
-    from orchestration.observers import Statistics
+    from orchestration.observers.observers_all import Statistics
     import numpy as np
 
     statistics = Statistics(SimpleNamespace(summary={}, components={"device": spec}))
@@ -112,23 +120,23 @@ def test_implausible_output_makes_a_warning_and_a_count():
 def test_unwritable_fmu_folder_is_a_build_error_naming_it(tmp_path):
     blocker = tmp_path / "not_a_folder"
     blocker.write_text("")
-    spec = next(iter(build.FMU_SPECS.values()))
-    with pytest.raises(build.BuildError) as info:
-        build.build_fmu_from_spec(spec, dest=blocker / "fmus")
+    spec = next(iter(specs.FMU_SPECS.values()))
+    with pytest.raises(BuildError) as info:
+        package.build_fmu_from_spec(spec, dest=blocker / "fmus")
     assert "cannot write" in str(info.value) and str(blocker) in str(info.value)
 
 
 def test_damaged_numba_cache_names_the_folder_to_delete(tmp_path, monkeypatch):
-    spec = next(iter(build.FMU_SPECS.values()))
-    folder = tmp_path / build.kernel_cache_folders(spec)[0]  # a folder the FMU's kernels load from
+    spec = next(iter(specs.FMU_SPECS.values()))
+    folder = tmp_path / kernels.kernel_cache_folders(spec)[0]  # a folder the FMU's kernels load from
     folder.mkdir()
-    assert build.numba_cache_damage(tmp_path) is None
+    assert kernels.numba_cache_damage(tmp_path) is None
     (folder / "kernel.nbi").write_bytes(b"\x80\x04\x95\x10\x00")  # a pickle cut short
-    damage = build.numba_cache_damage(tmp_path)
+    damage = kernels.numba_cache_damage(tmp_path)
     assert damage and str(folder) in damage and "rm -rf" in damage
     monkeypatch.setenv("AAA_COSIM_NUMBA_CACHE", str(tmp_path))
-    with pytest.raises(build.BuildError, match="numba cache is damaged"):
-        build.warm_numba_cache(quiet=True)
+    with pytest.raises(BuildError, match="numba cache is damaged"):
+        warmup.warm_numba_cache(quiet=True)
 
 
 # 6 ------------------------------------------------------------------------------------------------
@@ -144,7 +152,7 @@ def test_truncated_fmu_binary_is_refused_before_loading(tmp_path):
     # in the orchestrator's own process: an error, not a SIGBUS
     proc = _python(f"""
         from orchestration.errors import FmuBinaryError
-        from orchestration.fmi3 import Fmi3Library
+        from orchestration.hosts.fmi3 import Fmi3Library
         try:
             Fmi3Library({str(truncated)!r})
         except FmuBinaryError as exc:
@@ -159,15 +167,15 @@ def test_truncated_fmu_binary_is_refused_before_loading(tmp_path):
             dst.writestr(item, payload[: len(payload) // 2] if item.filename == member else payload)
     text = (ROOT / "scenes" / "virtual_wall.toml").read_text()
     (tmp_path / "virtual_wall.toml").write_text(text)
-    with pytest.raises(scene.SceneError) as info:
-        scene.load_scene(tmp_path / "virtual_wall.toml")
+    with pytest.raises(SceneError) as info:
+        load_scene(tmp_path / "virtual_wall.toml")
     assert "truncated" in str(info.value) and str(broken) in str(info.value)
 
 
 def test_device_driven_to_metres_away_warns_in_the_summary(tmp_path):
     """The virtual wall scene with the operator pulling at 20 N away from the wall for 2 s: the
     device plant's position runs to tens of metres; the run completes but its summary says so."""
-    from orchestration.master import run_scene
+    from orchestration.run.simulation import run_scene
 
     text = (ROOT / "scenes" / "virtual_wall.toml").read_text()
     pushes = ("[[2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2.0, 0.0, 0.0], "
@@ -175,7 +183,7 @@ def test_device_driven_to_metres_away_warns_in_the_summary(tmp_path):
     assert pushes in text
     (tmp_path / "wall.toml").write_text(text.replace(pushes, "[" + ", ".join(["[-20.0, 0.0, 0.0]"] * 6) + "]"))
     shutil.copy(FMUS / "Contact.fmu", tmp_path / "Contact.fmu")
-    summary, _ = run_scene(scene.load_scene(tmp_path / "wall.toml"), tmp_path / "out", progress=False, plots=False,
+    summary, _ = run_scene(load_scene(tmp_path / "wall.toml"), tmp_path / "out", progress=False, plots=False,
                            vtu=False)
     assert summary["implausible_outputs"]["count"] >= 1
     assert summary["implausible_outputs"]["outputs"]["device.position"]["worst"] < -10.0
@@ -192,11 +200,11 @@ def test_unusable_home_skips_the_numba_cache_with_a_warning(monkeypatch, caplog)
         def exists(self):
             raise PermissionError(13, "Permission denied", str(self))
 
-    monkeypatch.setattr(build, "_numba_cache_root", no_home)
-    with caplog.at_level("WARNING", logger=build.logger.name):
-        assert build.warm_numba_cache(quiet=True) is False
-    monkeypatch.setattr(build, "_numba_cache_root", lambda: Forbidden("/root/.cache/aaa-cosim/numba"))
-    with caplog.at_level("WARNING", logger=build.logger.name):
-        assert build.warm_numba_cache(quiet=True) is False
+    monkeypatch.setattr(kernels, "_numba_cache_root", no_home)
+    with caplog.at_level("WARNING", logger=warmup.logger.name):
+        assert warmup.warm_numba_cache(quiet=True) is False
+    monkeypatch.setattr(kernels, "_numba_cache_root", lambda: Forbidden("/root/.cache/aaa-cosim/numba"))
+    with caplog.at_level("WARNING", logger=warmup.logger.name):
+        assert warmup.warm_numba_cache(quiet=True) is False
     text = caplog.text
     assert "no numba cache folder" in text and "cannot be used" in text and "AAA_COSIM_NUMBA_CACHE" in text

@@ -33,7 +33,7 @@ REPO = Path(__file__).resolve().parent.parent
 def built(tissue_fmu, contact_fmu, catheter_fmu):
     """The shipped scenes use fmus/: build them from this checkout first (before each test: a run
     under a file-size limit or on a tiny volume could not build them)."""
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 
@@ -176,7 +176,7 @@ def test_a_stopped_row_writer_is_killed_at_its_deadline_and_reported(tmp_path):
     proc = _python(f"""
         import os, signal, time
         import numpy as np
-        from orchestration.row_writer import RowWriter
+        from orchestration.observers.row_writer import RowWriter
         if __name__ == "__main__":
             writer = RowWriter()
             writer.helper.timeout = 1.0
@@ -205,7 +205,7 @@ def test_a_block_cut_by_a_file_size_limit_leaves_whole_rows_and_tells_at_once(tm
     proc = _python(f"""
         import time
         import numpy as np
-        from orchestration.row_writer import RowWriter
+        from orchestration.observers.row_writer import RowWriter
         if __name__ == "__main__":
             writer = RowWriter()
             notices = []

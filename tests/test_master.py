@@ -14,9 +14,10 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from orchestration.master import run_scene
-from orchestration.recording import read_stream
-from orchestration.scene import SceneError, scene_from_dict
+from orchestration.run.simulation import run_scene
+from orchestration.observers.recorder import read_stream
+from orchestration.scene.model import SceneError
+from orchestration.scene.loading import scene_from_dict
 
 A, B, C = 1.0, 2.0, 3.0
 
@@ -200,7 +201,7 @@ def test_an_algebraic_loop_of_gauss_seidel_connections_is_rejected(synthetic_fmu
 def test_the_remembered_schedule_steps_exactly_as_deciding_afresh(synthetic_fmus, tmp_path, monkeypatch):
     """The schedule is decided once per relative state and then looked up; deciding every call
     afresh (no memory) must give byte-identical results, across rates that share no step."""
-    from orchestration import algorithm
+    from orchestration.run import algorithm
 
     data = signal_echo_scene(synthetic_fmus, 0.001, "1/30", "average", "jacobi", duration=0.6)
     data["fmu"]["echo2"] = {"path": str(synthetic_fmus["Echo"]), "step": "1/70"}
@@ -234,8 +235,8 @@ def test_a_duration_off_the_step_grid_is_refused_with_the_durations_that_fit(syn
 
 def test_a_scene_object_runs_twice_with_the_same_results(tmp_path):
     """Blocks and sources are created per run: the device plant starts from rest both times."""
-    from orchestration.build import ensure_fmus_built
-    from orchestration.scene import load_scene
+    from orchestration.app.warmup import ensure_fmus_built
+    from orchestration.scene.loading import load_scene
 
     ensure_fmus_built(quiet=True)
     scene = load_scene("virtual_wall", {"duration": 0.2})
@@ -253,9 +254,9 @@ def test_a_run_whose_row_writer_dies_keeps_every_row_and_says_so(tmp_path, monke
     printed text say what happened."""
     import signal
 
-    from orchestration.build import ensure_fmus_built
-    from orchestration.row_writer import RowWriter
-    from orchestration.scene import load_scene
+    from orchestration.app.warmup import ensure_fmus_built
+    from orchestration.observers.row_writer import RowWriter
+    from orchestration.scene.loading import load_scene
 
     ensure_fmus_built(quiet=True)
     write = RowWriter.write
@@ -304,7 +305,7 @@ class _StepTrace:
 def _run_signal_echo(synthetic_fmus, tmp_path, hosts: dict, observers: list) -> None:
     """The signal -> echo scene (1/30 s producer, 1 ms consumer, hold, jacobi, 0.1 s) stepped by
     the algorithm itself, each component on the host class ``hosts`` names."""
-    from orchestration.algorithm import MultirateAlgorithm
+    from orchestration.run.algorithm import MultirateAlgorithm
 
     data = signal_echo_scene(synthetic_fmus, "1/30", 0.001, "hold", "jacobi", duration=0.1)
     scene = scene_from_dict(data, tmp_path)
@@ -328,8 +329,8 @@ def test_a_worker_step_starts_after_the_ticks_steps_and_is_collected_once_done(s
     [3, 6] ... [99, 102] need only the sample at 0, [102, 105] the one at 100. The consumer's steps
     take 2 ms each here and the worker's almost nothing, so its result arrives long before the
     33rd consumer step. In process the producer simply steps first (its rank), done when it starts."""
-    from orchestration.hosting import InProcessFmu
-    from orchestration.worker import WorkerFmu
+    from orchestration.hosts.in_process import InProcessFmu
+    from orchestration.hosts.worker import WorkerFmu
 
     class SlowFmu(InProcessFmu):
         def start_step(self, t, h, inputs):
@@ -358,8 +359,8 @@ def test_a_worker_step_starts_after_the_ticks_steps_and_is_collected_once_done(s
 def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
     """--realtime: what the observers do when the run starts (the progress bar's import of tqdm
     took 6-7 ms) does not make the first haptic steps late."""
-    from orchestration.hosting import InProcessFmu
-    from orchestration.observers import RealtimePacing
+    from orchestration.hosts.in_process import InProcessFmu
+    from orchestration.observers.observers_all import RealtimePacing
 
     class SlowStart:
         def started(self, algorithm):
@@ -375,9 +376,9 @@ def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
 def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_path):
     """--realtime: this process keeps one CPU, the worker gets another, and this process has all
     its CPUs back once the run is finished (the master notifies "finished" however a run ends)."""
-    from orchestration.hosting import InProcessFmu
-    from orchestration.observers import RealtimePacing
-    from orchestration.worker import WorkerFmu
+    from orchestration.hosts.in_process import InProcessFmu
+    from orchestration.observers.observers_all import RealtimePacing
+    from orchestration.hosts.worker import WorkerFmu
 
     before = os.sched_getaffinity(0)
     seen = {}

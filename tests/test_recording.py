@@ -18,9 +18,8 @@ import meshio
 import numpy as np
 import pytest
 
-from orchestration.plots import _series_lines, plot_signals
-from orchestration.recording import (Recorder, RecordingError, port_values, read_stream,
-                                     write_summary)
+from orchestration.observers.plots import _series_lines, plot_signals
+from orchestration.observers.recorder import Recorder, RecordingError, port_values, read_stream, write_summary
 
 REPO = Path(__file__).resolve().parent.parent
 AWKWARD = np.array([1 / 3, 1e-300, -0.0, 5e-324, 1.7976931348623157e308, 0.1 + 0.2, -2.5e-17, math.pi,
@@ -102,7 +101,7 @@ def test_rows_reach_the_os_within_flush_interval_without_close(tmp_path):
 CHILD = textwrap.dedent("""
     import os, sys, time
     import numpy as np
-    from orchestration.recording import Recorder
+    from orchestration.observers.recorder import Recorder
     mode, out, interval = sys.argv[1], sys.argv[2], float(sys.argv[3])
     rec = Recorder(out, flush_interval=interval)
     rec.add_stream("c", [("wall", 1, "s"), ("v", 3, None)])
@@ -177,7 +176,7 @@ def test_sigkill_mid_run_keeps_rows_older_than_flush_interval(tmp_path):
 def test_read_stream_skips_a_truncated_last_line_and_malformed_lines(tmp_path, caplog):
     path = tmp_path / "c.csv"
     path.write_text('"time","a","b"\n0.0,1.0,2.0\n0.001,1.5,2.5\n0.002,oops\n0.003,3.0,4.0\n0.004,5.0,6')
-    with caplog.at_level(logging.WARNING, logger="orchestration.recording"):
+    with caplog.at_level(logging.WARNING, logger="orchestration.observers.recorder"):
         t, cols = read_stream(path)
     assert np.array_equal(t, [0.0, 0.001, 0.003])
     assert np.array_equal(cols["b"], [2.0, 2.5, 4.0])
@@ -241,7 +240,7 @@ def _surface_frames(tmp_path, writer):
 
 
 def test_surface_frames_written_by_the_writer_process_equal_those_written_in_process(tmp_path):
-    from orchestration.surface_writer import SurfaceWriter
+    from orchestration.observers.surface_writer import SurfaceWriter
 
     (tmp_path / "a").mkdir()
     writer = SurfaceWriter(tmp_path / "b")
@@ -292,8 +291,8 @@ def test_surface_frames_sent_before_the_recording_process_dies_are_all_written(t
         import os, signal, sys, time
         import numpy as np
         from pathlib import Path
-        from orchestration.recording import Recorder
-        from orchestration.surface_writer import SurfaceWriter
+        from orchestration.observers.recorder import Recorder
+        from orchestration.observers.surface_writer import SurfaceWriter
         if __name__ == "__main__":
             out = Path({str(tmp_path)!r})
             writer = SurfaceWriter(out)
@@ -314,7 +313,7 @@ def test_surface_frames_sent_before_the_recording_process_dies_are_all_written(t
 
 
 def test_a_frame_the_writer_process_cannot_write_is_reported_and_the_others_are_kept(tmp_path, caplog):
-    from orchestration.surface_writer import SurfaceWriter
+    from orchestration.observers.surface_writer import SurfaceWriter
 
     rec = Recorder(tmp_path, surface_writer=SurfaceWriter(tmp_path))
     rec.add_surface_series("wall", np.array([[0, 1, 2], [0, 2, 3]]))
@@ -327,7 +326,7 @@ def test_a_frame_the_writer_process_cannot_write_is_reported_and_the_others_are_
     (tmp_path / "wall").rename(blocked)
     (tmp_path / "wall").write_text("a file where the frames' folder was")
     rec.write_surface("wall", 1 / 30, np.ones((4, 3)))
-    with caplog.at_level(logging.ERROR, logger="orchestration.recording"):
+    with caplog.at_level(logging.ERROR, logger="orchestration.observers.recorder"):
         rec.close()
     assert len(rec.surface_errors) == 1 and "wall" in rec.surface_errors[0]
     assert "surface frames: wall" in caplog.text
@@ -346,7 +345,7 @@ def _awkward_rows(rec):
 
 
 def test_rows_written_by_the_row_writer_process_are_the_bytes_written_in_process(tmp_path):
-    from orchestration.row_writer import RowWriter
+    from orchestration.observers.row_writer import RowWriter
 
     writer = RowWriter()
     pid = writer.pid
@@ -367,8 +366,8 @@ def test_rows_sent_before_the_recording_process_dies_are_all_written(tmp_path):
     script = textwrap.dedent(f"""
         import os, signal
         import numpy as np
-        from orchestration.recording import Recorder
-        from orchestration.row_writer import RowWriter
+        from orchestration.observers.recorder import Recorder
+        from orchestration.observers.row_writer import RowWriter
         if __name__ == "__main__":
             writer = RowWriter()
             rec = Recorder({str(tmp_path)!r}, flush_interval=30.0, row_writer=writer)
@@ -385,7 +384,7 @@ def test_rows_sent_before_the_recording_process_dies_are_all_written(tmp_path):
 
 
 def test_rows_the_row_writer_cannot_write_are_reported_and_the_others_are_kept(tmp_path):
-    from orchestration.row_writer import RowWriter
+    from orchestration.observers.row_writer import RowWriter
 
     writer = RowWriter()
     good = tmp_path / "good.csv"
@@ -433,7 +432,7 @@ def test_plots_are_valid_pngs_and_missing_data_is_skipped_with_a_warning(tmp_pat
             {"ylabel": "N", "series": [{"stream": "contact", "column": "no_such_port"},
                                        {"stream": "no_such_stream", "column": "x"}]}]},
     ]
-    with caplog.at_level(logging.WARNING, logger="orchestration.plots"):
+    with caplog.at_level(logging.WARNING, logger="orchestration.observers.plots"):
         paths = plot_signals(tmp_path, figures)
     assert paths == [tmp_path / "forces.png", tmp_path / "missing.png"]
     for path in paths:

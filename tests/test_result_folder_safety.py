@@ -20,10 +20,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestration import cli, outfolder
-from orchestration.outfolder import OutputFolderError, ResultFolder
-from orchestration.recording import Recorder, RecordingError
-from orchestration.scene import SCENE_DIR, SceneError, scene_from_dict
+from orchestration.app import cli, result_folder as outfolder
+from orchestration.app.result_folder import OutputFolderError, ResultFolder
+from orchestration.observers.recorder import Recorder, RecordingError
+from fmu_build.paths import SCENE_DIR
+from orchestration.scene.model import SceneError
+from orchestration.scene.loading import scene_from_dict
 
 REPO = Path(__file__).resolve().parent.parent
 CHEAP = ["virtual_wall", "--duration", "0.01", "--no-vtu", "--quiet", "--hosting", "in-process"]
@@ -32,7 +34,7 @@ CHEAP = ["virtual_wall", "--duration", "0.01", "--no-vtu", "--quiet", "--hosting
 @pytest.fixture(scope="module")
 def built():
     """The shipped scenes load their FMUs' descriptions from fmus/."""
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 
@@ -342,7 +344,7 @@ def test_the_recorder_refuses_a_surface_whose_folder_is_another_result(tmp_path)
 
 
 def test_plots_refuse_two_figures_into_one_file_and_keep_a_folder_in_the_way(tmp_path, caplog):
-    from orchestration.plots import plot_signals
+    from orchestration.observers.plots import plot_signals
 
     (tmp_path / "contact.csv").write_text('"time","x"\n0.0,1.0\n0.1,2.0\n')
     panel = [{"series": [{"stream": "contact", "column": "x"}]}]

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from process_helpers import assert_no_process_left
 
-from orchestration.master import run_scene
-from orchestration.recording import read_stream
-from orchestration.scene import load_scene
+from orchestration.run.simulation import run_scene
+from orchestration.observers.recorder import read_stream
+from orchestration.scene.loading import load_scene
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def built(tissue_fmu, contact_fmu, catheter_fmu):
     """The shipped scenes use fmus/: build them from this checkout first."""
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
 
@@ -215,7 +215,7 @@ def test_default_scene_renders_a_device_stiffness_without_chatter(default_scene_
 
 
 def test_a_duration_off_the_step_grid_is_a_usage_error_on_the_command_line(built, tmp_path, capsys):
-    from orchestration.cli import EXIT_USAGE, main
+    from orchestration.app.cli import EXIT_USAGE, main
 
     assert main(["run", "virtual_wall", "--duration", "0.0015", "--quiet", "--out", str(tmp_path)]) == EXIT_USAGE
     err = capsys.readouterr().err

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from orchestration.scene import SCENE_DIR, Scene, SceneError, load_scene, scene_from_dict
+from fmu_build.paths import SCENE_DIR
+from orchestration.scene.model import Scene, SceneError
+from orchestration.scene.loading import load_scene, scene_from_dict
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = ("aaa_endovascular", "virtual_wall", "tissue_indentation", "catheter_tube")
@@ -184,7 +186,7 @@ def test_overrides_replace_parameters_and_steps():
 def test_model_descriptions_carry_the_real_start_values(fmus):
     """The model descriptions carry the start values the FMUs start with (generated from the
     declarations)."""
-    from orchestration.ports import read_fmu
+    from orchestration.hosts.description import read_fmu
 
     contact = read_fmu(fmus["Contact"]).ports
     assert contact["stiffness"].start == 500.0 and contact["internal_step"].start == 0.001
@@ -316,17 +318,17 @@ def test_a_rigid_surface_too_large_to_allocate_is_refused(key, value, fragment):
 
 def test_a_value_outside_the_declared_min_max_of_a_variable_is_a_problem():
     # The project's FMUs declare no min/max yet; an FMU that does has its range checked by validate.
-    from orchestration.ports import PortInfo
-    from orchestration.scene import _check_parameters
+    from orchestration.hosts.description import PortInfo
+    from orchestration.scene.values import check_parameters
 
     ports = {"gain": PortInfo("gain", "parameter", "Float64", "fixed", minimum=0.0, maximum=10.0),
              "n": PortInfo("n", "parameter", "Int32", "fixed", minimum=1.0)}
     problems: list[str] = []
-    _check_parameters("[fmu.x]", {"gain": 11.0, "n": 0}, ports, problems)
+    check_parameters("[fmu.x]", {"gain": 11.0, "n": 0}, ports, problems)
     assert problems == ["[fmu.x] parameters.gain: 11.0 is outside the range the FMU declares for it, 0 to 10",
                         "[fmu.x] parameters.n: 0 is outside the range the FMU declares for it, 1 to inf"]
     problems.clear()
-    _check_parameters("[fmu.x]", {"gain": 10.0, "n": 1}, ports, problems)
+    check_parameters("[fmu.x]", {"gain": 10.0, "n": 1}, ports, problems)
     assert problems == []
 
 

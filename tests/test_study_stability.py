@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from orchestration.studies import stability
-from orchestration.sweep import load_results
+from orchestration.studies.sweep import load_results
 
 
 @pytest.fixture(scope="module")

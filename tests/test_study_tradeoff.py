@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 from orchestration.studies import tradeoff
-from orchestration.studies.tradeoff import (closest_points_on_triangles, displacement_on_reference,
-                                            pareto_front, surface_of_level)
+from orchestration.studies.tradeoff import closest_points_on_triangles, displacement_on_reference, pareto_front, surface_of_level
 
 
 # --- helpers against slow references -----------------------------------------------------------
@@ -78,7 +77,7 @@ def test_pareto_front_against_brute_force():
 
 @pytest.fixture(scope="module")
 def quick_study(tmp_path_factory):
-    from orchestration.build import ensure_fmus_built
+    from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)
     out = tmp_path_factory.mktemp("study_tradeoff")

@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestration.sweep import (SweepConfigError, load_results, point_key, results_table,
-                                 run_sweep)
+from orchestration.studies.sweep import SweepConfigError, load_results, point_key, results_table, run_sweep
 
 TESTS_DIR = Path(__file__).resolve().parent
 CALLS_ENV = "SWEEP_TEST_CALLS"  # file where tasks log "pid key" per call (inherited by workers)
@@ -146,7 +145,7 @@ def test_values_match_the_closed_form_in_point_order(tmp_path, calls_file):
 
 
 def test_failures_are_recorded_and_the_sweep_goes_on(tmp_path, calls_file, caplog):
-    with caplog.at_level(logging.WARNING, logger="orchestration.sweep"):
+    with caplog.at_level(logging.WARNING, logger="orchestration.studies.sweep"):
         results = run_sweep(mixed_task, MIXED_POINTS + EXTRA_POINTS, tmp_path / "r.jsonl",
                             workers=2, progress=False)
 
@@ -169,7 +168,7 @@ def test_failures_are_recorded_and_the_sweep_goes_on(tmp_path, calls_file, caplo
     assert by_x[8].values == {"x_squared": 64.0, "powers": [0, 1, 256]}
     # One warning per failed point, naming the reason.
     warnings = [rec.getMessage() for rec in caplog.records
-                if rec.name == "orchestration.sweep" and rec.levelno == logging.WARNING]
+                if rec.name == "orchestration.studies.sweep" and rec.levelno == logging.WARNING]
     assert len(warnings) == 5
     assert sum("signal SIGABRT" in w for w in warnings) == 2
     # Every line on disk, the failed ones too.

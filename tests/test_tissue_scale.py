@@ -21,7 +21,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from orchestration.native_threads import NATIVE_THREAD_LIMITS
+from orchestration.hosts.native_threads import NATIVE_THREAD_LIMITS
 from tissue_fmu import kernels
 from tissue_fmu.errors import MeshError, TissueError
 from tissue_fmu.forcefield import TensorMassForceField, assemble_stiffness
@@ -233,12 +233,12 @@ def test_backend_choice_and_refusal():
 _THREADS_SCRIPT = """
 import hashlib, json, os, sys
 if sys.argv[1] == "limited":
-    from orchestration.native_threads import limit_native_threads
+    from orchestration.hosts.native_threads import limit_native_threads
     limit_native_threads()  # what the orchestrator's processes do before loading an FMU
 import numpy as np
 from threadpoolctl import threadpool_info
 from tissue_fmu import TissueModel, TissueParameters, aaa_mesh
-from orchestration.native_threads import NATIVE_THREAD_LIMITS
+from orchestration.hosts.native_threads import NATIVE_THREAD_LIMITS
 from tissue_fmu.factorization import _SYSTEM_BLAS, backend_available
 
 threads = lambda: len(os.listdir("/proc/self/task"))
@@ -271,7 +271,7 @@ def test_system_cholmod_threads_bits_and_good_manners():
     * the same bits whatever the process's CPUs and thread settings: its BLAS runs on one thread in
       every CHOLMOD call (two OpenBLAS threads round differently), and the thread count it found
       is restored afterwards, for an importer that uses the same OpenBLAS;
-    * with the orchestrator's limits in the environment (orchestration.native_threads) loading
+    * with the orchestrator's limits in the environment (orchestration.hosts.native_threads) loading
       and factorising start no thread (CHOLMOD would take 4 OpenMP threads beside the 1 kHz loop);
     * the library itself leaves the environment alone: it also runs inside other people's FMU
       importers, whose OpenMP it must not cap."""

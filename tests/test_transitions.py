@@ -8,9 +8,9 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from orchestration import transitions as tr
-from orchestration.master import tick_base
-from orchestration.scene import scene_from_dict
+from orchestration.plan import transitions as tr
+from orchestration.run.simulation import tick_base
+from orchestration.scene.loading import scene_from_dict
 
 
 def history_of(signal, step, n):
@@ -155,7 +155,7 @@ def test_tick_base_is_the_lcm_of_the_step_denominators(tmp_path):
 
 def test_extend_is_append_one_at_a_time():
     """The compiled loop hands a stretch's samples over at once: the same history as appending each."""
-    from orchestration.transitions import SampleHistory
+    from orchestration.plan.transitions import SampleHistory
 
     one, many = SampleHistory(3), SampleHistory(3)
     one.append(3, np.array([1.0]))

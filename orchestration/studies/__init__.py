@@ -2,7 +2,7 @@
 
 ``python -m orchestration study tradeoff | stability | extremes`` runs one; each writes a CSV of
 every point, PNG figures and a short Markdown report into ``results/study_<name>/``. Points run
-in parallel through ``orchestration.sweep`` (a local process pool, or a Dask cluster with
+in parallel through ``orchestration.studies.sweep`` (a local process pool, or a Dask cluster with
 ``--scheduler``), are resumable, and a failed point is recorded and does not stop the study.
 ``--quick`` runs the reduced version the tests run.
 """
@@ -19,7 +19,7 @@ def run_study(name: str, *, out: Path | str | None = None, quick: bool = False, 
               scheduler: str | None = None, fresh: bool = False, quiet: bool = False) -> int:
     """Run study ``name`` into ``out`` (default results/study_<name>); returns an exit code.
 
-    The FMUs must be built (``orchestration.build.ensure_fmus_built``).
+    The FMUs must be built (``orchestration.app.warmup.ensure_fmus_built``).
     """
     if name not in STUDIES:
         raise ValueError(f"no study {name!r}; studies: {', '.join(STUDIES)}")

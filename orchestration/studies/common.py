@@ -21,8 +21,8 @@ def run_point(scene: str, overrides: dict | None = None, *, duration: float | No
     None, removed afterwards). A scene problem raises ``SceneError``; an FMU failure is reported
     in ``summary["status"]`` / ``summary["error"]``.
     """
-    from ..master import Simulation
-    from ..scene import load_scene
+    from orchestration.run.simulation import Simulation
+    from orchestration.scene.loading import load_scene
 
     loaded = load_scene(scene, dict(overrides or {}))
     with tempfile.TemporaryDirectory(prefix="study_point_") as tmp:
@@ -35,7 +35,7 @@ def run_point(scene: str, overrides: dict | None = None, *, duration: float | No
             for comp in loaded.record:
                 path = target / f"{comp}.csv"
                 if path.exists():
-                    from ..recording import read_stream
+                    from orchestration.observers.recorder import read_stream
 
                     simulation.streams[comp] = read_stream(path)
     return summary, simulation

@@ -1,6 +1,6 @@
 """Numerical extremes (issue 6): one row per extreme, each ``stable``, ``detected`` or ``failing``.
 
-Every row is a sweep point (``orchestration.sweep.run_sweep`` over :func:`run_row`) that runs the
+Every row is a sweep point (``orchestration.studies.sweep.run_sweep`` over :func:`run_row`) that runs the
 real FMUs through the orchestrator (in-process hosting); only the explicit-step rows use the
 Tissue model once, before the run, to read the critical time step they need to pick ``substeps``.
 
@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..blocks import PLANT_LIMITS
-from .common import run_point, write_table
+from fmu_build.paths import DEFAULT_FMU_DIR
+from orchestration.blocks import PLANT_LIMITS
+from orchestration.studies.common import run_point, write_table
 
 logger = logging.getLogger(__name__)
 
@@ -390,7 +391,7 @@ contact = ["tool_force", "penetration_depth", "contact_count"]
 
 
 def _fmus_dir() -> Path:
-    return Path(__file__).resolve().parents[2] / "fmus"
+    return DEFAULT_FMU_DIR
 
 
 def _run_plane(point: dict) -> dict:
@@ -467,7 +468,7 @@ def _run_nan_runtime(point: dict) -> dict:
 
 
 def _run_nan_scene(point: dict) -> dict:
-    from ..scene import SceneError
+    from orchestration.scene.model import SceneError
 
     overrides = {"operator.times": [0.0, 0.05], "operator.outputs": {"force": [[1.0, 0.0, 0.0], [math.nan, 0.0, 0.0]]}}
     try:
@@ -503,7 +504,7 @@ NUMBER_COLUMNS = ("bound_held", "peak_tool_force_N", "peak_penetration_m", "firs
 
 
 def run(out, quick: bool = False, workers=None, scheduler=None, progress: bool = True) -> Path:
-    from ..sweep import run_sweep
+    from orchestration.studies.sweep import run_sweep
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import run_point, write_table
+from orchestration.studies.common import run_point, write_table
 
 logger = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ def _wall_overrides(K, B, b_dev, T, mass, times, forces, x0) -> dict:
 
 
 def _device_series(simulation):
-    from ..recording import port_values
+    from orchestration.observers.recorder import port_values
 
     time, cols = simulation.streams["device"]
     x = port_values(cols, "position")[:, 0]
@@ -226,7 +226,7 @@ def _probe_path(times: np.ndarray, overrides: dict) -> np.ndarray:
 
 def indentation_run(tissue_rate, haptic_rate, local_model, passivity, stiffness=BASE_STIFFNESS) -> dict:
     """tissue_indentation on the coarse mesh: time, tool force (n, 3), port energy (n,)."""
-    from ..recording import port_values
+    from orchestration.observers.recorder import port_values
 
     overrides = _coarse_mesh_overrides()
     overrides.update({"tissue.step": f"1/{int(tissue_rate)}", "contact.step": f"1/{int(haptic_rate)}",
@@ -391,7 +391,7 @@ def _grid(quick: bool, out: Path) -> tuple[list[dict], list[dict]]:
 
 def run(out, quick: bool = False, workers=None, scheduler=None, progress: bool = True) -> Path:
     """Run the stability study into ``out``; returns the path of report.md."""
-    from ..sweep import results_table, run_sweep
+    from orchestration.studies.sweep import results_table, run_sweep
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -420,7 +420,7 @@ def run(out, quick: bool = False, workers=None, scheduler=None, progress: bool =
 
 def _forget(results_path: Path, point: dict) -> None:
     """Drop the ok line of ``point`` from the results file so that the sweep runs it again."""
-    from ..sweep import point_key
+    from orchestration.studies.sweep import point_key
 
     if not results_path.exists():
         return

@@ -189,7 +189,7 @@ def _probe_overrides(depth_mm: float, duration: float) -> dict:
 
 def run_setting(point: dict) -> dict:
     """Sweep task: run one setting, return costs, forces and the final surface displacement."""
-    from .common import run_point
+    from orchestration.studies.common import run_point
 
     scene = point["scene"]
     level = point["mesh"]
@@ -495,8 +495,8 @@ def write_report(rows, out: Path, quick: bool) -> Path:
 
 def run(out, quick: bool = False, workers=None, scheduler=None, progress: bool = True) -> Path:
     """Run the study into ``out``; return the path of report.md."""
-    from ..sweep import run_sweep
-    from .common import write_table
+    from orchestration.studies.sweep import run_sweep
+    from orchestration.studies.common import write_table
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ import logging
 import os
 from pathlib import Path
 
-from .helper_process import HelperProcess, begin_helper, serve
+from orchestration.observers.helper_process import HelperProcess, begin_helper, serve
 
 #: The helper's name in messages; its process runs as "row-writer".
 LABEL = "row writer"

@@ -40,13 +40,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .algorithm import MultirateAlgorithm, RunInterrupted, RunTerminated, tick_base  # noqa: F401 (re-exported)
-from .errors import OrchestrationError
-from .observers import Progress, RealtimePacing, Recording, Statistics
-from .outfolder import COMPLETE_STATUSES  # the statuses whose results are complete; a loss makes them "failed"
-from .scene import ComponentSpec, Scene, duration_problem, float_time
-from .stopping import stop_signals
-from .summary import fmu_messages, format_summary
+from orchestration.run.algorithm import MultirateAlgorithm, RunInterrupted, RunTerminated, tick_base  # noqa: F401 (re-exported)
+from orchestration.errors import OrchestrationError
+from orchestration.observers.observers_all import Progress, RealtimePacing, Recording, Statistics
+from orchestration.app.result_folder import COMPLETE_STATUSES  # the statuses whose results are complete; a loss makes them "failed"
+from orchestration.scene.model import ComponentSpec, Scene
+from orchestration.scene.timing import duration_problem, float_time
+from orchestration.stopping import stop_signals
+from orchestration.observers.summary import fmu_messages, format_summary
 
 logger = logging.getLogger(__name__)
 
@@ -82,7 +83,7 @@ class Simulation:
         self.write_vtu = vtu
         #: extra ports to read after every step (studies): {component: [port, ...]}
         self.extra_observed = dict(observe or {})
-        #: run stretches of in-process FMU steps in C (orchestration.compiled_loop); False: all in Python
+        #: run stretches of in-process FMU steps in C (orchestration.run.compiled_loop); False: all in Python
         self.compiled_loop = compiled_loop
         #: the latest outputs of every component, {component: {port: array}}, kept after the run
         self.final_outputs: dict[str, dict[str, np.ndarray]] = {}
@@ -108,10 +109,10 @@ class Simulation:
         if not spec.is_fmu:
             return spec.new_block()
         if self.hosting_of(spec) == "in-process":
-            from .hosting import InProcessFmu
+            from orchestration.hosts.in_process import InProcessFmu
 
             return InProcessFmu(spec.name, spec.description)
-        from .worker import WorkerFmu
+        from orchestration.hosts.worker import WorkerFmu
 
         return WorkerFmu(spec.name, spec.description, reply_timeout=self.scene.worker_timeout)
 
@@ -122,7 +123,7 @@ class Simulation:
             return self._run(stop)
 
     def _run(self, stop) -> dict:
-        from .recording import reserve_summary_space
+        from orchestration.observers.recorder import reserve_summary_space
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
         reserve_summary_space(self.out_dir)  # a volume the rows fill up still takes the summary that says so
@@ -186,7 +187,7 @@ class Simulation:
                 summary["results"]["plots"] = "skipped (results lost)"
             else:
                 try:
-                    from .plots import plot_signals
+                    from orchestration.observers.plots import plot_signals
 
                     summary["results"]["plots"] = [str(p) for p in plot_signals(self.out_dir, self.scene.plots)]
                 except Exception as exc:  # plots are a convenience: never lose the summary over them
@@ -203,7 +204,7 @@ class Simulation:
         paths in the folder written to); return where the results are. A volume that refuses either
         (full, read-only, the folder deleted) is said in the summary and the log and makes the run
         "failed" (its status and error are updated here), never a traceback."""
-        from .recording import io_problem, write_summary
+        from orchestration.observers.recorder import io_problem, write_summary
 
         final_dir = self.folder.destination(summary["status"]) if self.folder is not None else self.out_dir
         try:

@@ -1,6 +1,6 @@
 """Observers of a run: recording, statistics, real-time pacing and progress.
 
-Each is notified by :class:`~orchestration.algorithm.MultirateAlgorithm` (see its ``Observer``
+Each is notified by :class:`~orchestration.run.algorithm.MultirateAlgorithm` (see its ``Observer``
 protocol) and never changes what the components compute. A new observer is one class here.
 """
 from __future__ import annotations
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .blocks import PLANT_MAX_POSITION, PLANT_MAX_SPEED
-from .scene import Scene
+from orchestration.blocks import PLANT_MAX_POSITION, PLANT_MAX_SPEED
+from orchestration.scene.model import Scene
 
 logger = logging.getLogger(__name__)
 
@@ -33,11 +33,11 @@ class Recording:
         # FMUs' set-up, not into the first steps.
         self._surface_writer = self._row_writer = None
         if self.surfaces:
-            from .surface_writer import SurfaceWriter
+            from orchestration.observers.surface_writer import SurfaceWriter
 
             self._surface_writer = SurfaceWriter(self.out_dir)
         if self._recorded:
-            from .row_writer import RowWriter
+            from orchestration.observers.row_writer import RowWriter
 
             self._row_writer = RowWriter()
 
@@ -49,7 +49,7 @@ class Recording:
         return ports
 
     def initializing(self, algorithm) -> None:
-        from .recording import Recorder
+        from orchestration.observers.recorder import Recorder
 
         self.seconds = algorithm.seconds
         self.base = algorithm.base

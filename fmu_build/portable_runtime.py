@@ -35,7 +35,12 @@ import shutil
 import subprocess
 import sys
 import sysconfig
+import zipfile
+from dataclasses import dataclass
 from pathlib import Path
+
+from .errors import unwritable
+from .paths import BUILD_DIR, SRC
 
 logger = logging.getLogger(__name__)
 
@@ -310,3 +315,53 @@ def build_runtime(build_dir: Path, source_root: Path) -> Path:
 
 def folder_size(folder: Path) -> int:
     return sum(p.stat().st_size for p in Path(folder).rglob("*") if p.is_file() and not p.is_symlink())
+
+
+@dataclass(frozen=True)
+class CarriedRuntime:
+    """The Python runtime every FMU carries (portable_runtime.py): its archive and its digest."""
+
+    archive: Path
+    digest: str
+    #: {"python": "3.11", "glibc": "2.36", "requirements": {distribution: version}}
+    description: dict
+
+    @property
+    def requirements(self) -> dict:
+        return self.description["requirements"]
+
+
+def prepare_carried_runtime(quiet: bool = False) -> None:
+    """Build the runtime the FMUs carry now (once per environment), saying so when it takes time."""
+    try:
+        folder = runtime_folder(BUILD_DIR, SRC)
+    except RuntimeUnavailable:
+        folder = None
+    if not quiet and folder is not None and not folder.with_suffix(".zip").exists():
+        print("packing the Python runtime the FMUs carry (once per environment, about a minute) ...", flush=True)
+    carried_runtime()
+
+
+def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
+    """The runtime the FMUs carry, built and archived once per environment; None (with a warning
+    saying why) when this Python cannot be carried: the FMUs then need the build's Python."""
+    try:
+        folder = build_runtime(build_dir, SRC)
+    except RuntimeUnavailable as exc:
+        logger.warning("the FMUs will carry no Python runtime and run only where this environment is: %s", exc)
+        return None
+    except OSError as exc:
+        raise unwritable("building the FMUs' Python runtime", exc, build_dir) from None
+    archive = folder.with_suffix(".zip")
+    if not archive.exists():
+        partial = archive.with_name(archive.name + f".{os.getpid()}.partial")
+        try:
+            with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as out:
+                for path in sorted(folder.rglob("*")):
+                    if path.is_file():
+                        out.write(path, path.relative_to(folder).as_posix())
+            partial.replace(archive)
+        except OSError as exc:
+            partial.unlink(missing_ok=True)
+            raise unwritable("archiving the FMUs' Python runtime", exc, build_dir) from None
+    return CarriedRuntime(archive, folder.name.partition("-")[2], json.loads((folder / "runtime.json").read_text()))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestration.recording import RecordingError, port_values, read_stream
+from orchestration.observers.recorder import RecordingError, port_values, read_stream
 
 log = logging.getLogger(__name__)
 

@@ -39,7 +39,7 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from .errors import FMI_DISCARD, FMI_ERROR, FMI_FATAL, FMI_OK, FMI_WARNING, FmuBinaryError, FmuCallError
+from orchestration.errors import FMI_DISCARD, FMI_ERROR, FMI_FATAL, FMI_OK, FMI_WARNING, FmuBinaryError, FmuCallError
 
 # -- C types ---------------------------------------------------------------------------------------
 c_instance = ctypes.c_void_p
@@ -439,7 +439,7 @@ class Fmi3Instance:
         #: after fmi3Error the instance is in the Error mode (no fmi3Terminate); after fmi3Fatal no call at all
         self.failed = False
         self.fatal = False
-        #: error-level messages logged so far, where compiled code can read it (orchestration.compiled_loop)
+        #: error-level messages logged so far, where compiled code can read it (orchestration.run.compiled_loop)
         self.logged_errors = np.zeros(1, dtype=np.int64)
         self._on_message = on_message
         self._functions = library.functions

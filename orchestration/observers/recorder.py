@@ -45,9 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import OrchestrationError
-from .row_writer import append_lines, format_rows, write_all
-from .surface_writer import write_frame, write_pvd
+from orchestration.errors import OrchestrationError
+from orchestration.observers.row_writer import append_lines, format_rows, write_all
+from orchestration.observers.surface_writer import write_frame, write_pvd
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .helper_process import HelperProcess, begin_helper, serve
+from orchestration.observers.helper_process import HelperProcess, begin_helper, serve
 
 #: The helper's name in messages; its process runs as "surface-writer".
 LABEL = "surface writer"

@@ -51,7 +51,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .errors import signal_name
+from fmu_build.paths import REPO_ROOT
+from orchestration.errors import signal_name
 
 logger = logging.getLogger(__name__)
 
@@ -60,7 +61,7 @@ __all__ = ["SweepResult", "SweepConfigError", "run_sweep", "load_results", "resu
 
 OK, FAILED = "ok", "failed"
 _MAX_ERROR_CHARS = 400
-_PACKAGE_PARENT = str(Path(__file__).resolve().parent.parent)
+_PACKAGE_PARENT = str(REPO_ROOT)
 # How often a worker process checks that the process that started it is still alive; an
 # orphaned worker (its sweep was killed) exits at once instead of finishing its point.
 _ORPHAN_CHECK_S = 0.2
@@ -305,7 +306,7 @@ def _worker_main(parent_pid: int) -> None:
 
 
 _WORKER_BOOT = ("import sys; sys.path.insert(0, {path!r}); "
-                "from orchestration.sweep import _worker_main; _worker_main({pid})")
+                "from orchestration.studies.sweep import _worker_main; _worker_main({pid})")
 
 
 # ---------------------------------------------------------------------------------------------

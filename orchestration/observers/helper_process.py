@@ -33,8 +33,8 @@ import time
 from multiprocessing.reduction import ForkingPickler
 from typing import Callable
 
-from . import stopping
-from .stopping import STOP_SIGNALS, RecentSlowest, set_process_name, start_shielded
+from orchestration import stopping
+from orchestration.stopping import STOP_SIGNALS, RecentSlowest, set_process_name, start_shielded
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +227,7 @@ class HelperProcess:
 
     def exit_description(self) -> str:
         """How the helper ended, for messages ("killed by signal SIGKILL"); "running" while it runs."""
-        from .errors import exit_description
+        from orchestration.errors import exit_description
 
         if self._process.is_alive():
             return "running"

@@ -47,9 +47,9 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from . import transitions as tr
-from .errors import FmuCallError, OrchestrationError
-from .scene import ComponentSpec, ConnectionSpec, Scene
+from orchestration.plan import transitions as tr
+from orchestration.errors import FmuCallError, OrchestrationError
+from orchestration.scene.model import ComponentSpec, ConnectionSpec, Scene
 
 logger = logging.getLogger(__name__)
 
@@ -227,7 +227,7 @@ class MultirateAlgorithm:
     def setup(self) -> None:
         """Resolve routes, create and instantiate the hosts, set parameters, enter initialization."""
         if self.use_compiled_loop:  # built or loaded now, as the FMUs are, not in the run's time
-            from .compiled_loop import load_program_runner
+            from orchestration.run.compiled_loop import load_program_runner
 
             load_program_runner()
         scene = self.scene
@@ -460,7 +460,7 @@ class MultirateAlgorithm:
         asynchronous = [c for c in comps if c.asynchronous]
         loop = None
         if self.use_compiled_loop:
-            from .compiled_loop import CompiledLoop
+            from orchestration.run.compiled_loop import CompiledLoop
 
             loop = self.compiled_loop = CompiledLoop.for_algorithm(self)
         members = loop.members if loop is not None else {}

@@ -1,10 +1,10 @@
 """Hosting an FMU in its own process, so that a crashing FMU cannot take the master down.
 
-The worker (a "spawn" child) runs an :class:`~orchestration.hosting.InProcessFmu`. Commands and
+The worker (a "spawn" child) runs an :class:`~orchestration.hosts.in_process.InProcessFmu`. Commands and
 replies are tiny tuples over a ``multiprocessing.Pipe`` (the protocol: :class:`Command` and
 :class:`Reply`, below); every value array moves through one ``SharedMemory`` block allocated by
 ``configure``: ``[inputs | observed outputs]`` as float64 slots laid out by
-:func:`~orchestration.hosting.slot_layout`. A step is: the master writes the inputs into their
+:func:`~orchestration.hosts.in_process.slot_layout`. A step is: the master writes the inputs into their
 slots and sends ``(STEP, t, h, which)``; the worker pushes those slots into the FMU, steps, reads
 the observed outputs into their slots and replies with fmi3DoStep's flags. No array is pickled.
 
@@ -40,11 +40,11 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
-from .errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
-from .hosting import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
-from .native_threads import limit_native_threads
-from .ports import FmuDescription, PortInfo
-from .stopping import STOP_SIGNALS, RecentSlowest, start_shielded
+from orchestration.errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
+from orchestration.hosts.in_process import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
+from orchestration.hosts.native_threads import limit_native_threads
+from orchestration.hosts.description import FmuDescription, PortInfo
+from orchestration.stopping import STOP_SIGNALS, RecentSlowest, start_shielded
 
 logger = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ class Reply:
 
 
 class WorkerFmu:
-    """The :class:`~orchestration.hosting.ComponentHost` protocol, with the FMU in a worker process.
+    """The :class:`~orchestration.hosts.in_process.ComponentHost` protocol, with the FMU in a worker process.
 
     ``start_timeout`` bounds the worker's start (interpreter, imports); ``setup_timeout`` each
     call until the FMU is initialized; ``reply_timeout`` each later reply (None: automatic, see the

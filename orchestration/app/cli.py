@@ -11,7 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
-from .native_threads import limit_native_threads
+from fmu_build.paths import DEFAULT_FMU_DIR
+from orchestration.hosts.native_threads import limit_native_threads
 
 logger = logging.getLogger("orchestration")
 
@@ -51,12 +52,19 @@ OUT that is a symbolic link is followed: the results replace its target, the lin
 
 
 def _cmd_build(args) -> int:
-    from .build import BuildError, available_fmus, build_all, first_load_seconds, fmu_contents, prepare_carried_runtime
+    from fmu_build.errors import BuildError
+    from fmu_build.package import build_all
+    from fmu_build.portable_runtime import prepare_carried_runtime
+    from fmu_build.report import first_load_seconds, fmu_contents
+    from fmu_build.specs import available_fmus
+    from orchestration.app.warmup import add_carried_kernels
 
     names = args.fmus or available_fmus()
     try:
         prepare_carried_runtime()
-        for path in build_all(names, Path(args.dest)):
+        built = build_all(names, Path(args.dest))
+        add_carried_kernels(built)
+        for path in built:
             first = first_load_seconds(path)
             load = (f"; first load {first:.1f} s (instantiation to the first step's end, as on a machine that "
                     "never ran it)" if first is not None else "; carries no Python runtime (needs the build's)")
@@ -96,7 +104,7 @@ def parse_assignments(items: list[str]) -> dict:
 
 def _duration(text: str):
     """``--duration``: a finite positive time in seconds, exact ("0.5", "1e-3", "1/30")."""
-    from .scene import parse_time
+    from orchestration.scene.timing import parse_time
 
     problems: list[str] = []
     value = parse_time(text, "--duration", problems)
@@ -147,7 +155,8 @@ def _out_problem(out: str) -> str | None:
 
 
 def _load(scene_arg: str, overrides: dict | None = None):
-    from .scene import SceneError, load_scene
+    from orchestration.scene.model import SceneError
+    from orchestration.scene.loading import load_scene
 
     try:
         return load_scene(scene_arg, overrides)
@@ -157,7 +166,8 @@ def _load(scene_arg: str, overrides: dict | None = None):
 
 
 def _cmd_validate(args) -> int:
-    from .scene import SceneError, load_scene
+    from orchestration.scene.model import SceneError
+    from orchestration.scene.loading import load_scene
 
     try:
         overrides = parse_assignments(args.set)
@@ -178,7 +188,7 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .stopping import stop_signals
+    from orchestration.stopping import stop_signals
 
     # From here to the exit code, Ctrl-C and SIGTERM only set a flag (python -m orchestration
     # installed the handlers before its imports; main() called from Python installs them here).
@@ -187,7 +197,7 @@ def _cmd_run(args) -> int:
 
 
 def _run_command(args, stop) -> int:
-    from .outfolder import OutputFolderError, ResultFolder
+    from orchestration.app.result_folder import OutputFolderError, ResultFolder
 
     # An --out that cannot be used is refused first, before a build or a scene load can take a
     # minute (the default folder needs the scene's name: it is checked once the scene is loaded).
@@ -206,9 +216,10 @@ def _run_command(args, stop) -> int:
 
 def _prepare_and_run(args, stop, folder) -> int:
     """Build, load the scene, run it into ``folder`` (None: the default ``results/<scene>``)."""
-    from .build import BuildError, ensure_fmus_built
-    from .master import Simulation
-    from .outfolder import ResultFolder
+    from fmu_build.errors import BuildError
+    from orchestration.app.warmup import ensure_fmus_built
+    from orchestration.run.simulation import Simulation
+    from orchestration.app.result_folder import ResultFolder
 
     try:
         ensure_fmus_built(args.quiet)
@@ -266,8 +277,9 @@ def _simulate(args, stop, scene, folder, Simulation) -> int:
 
 
 def _cmd_study(args) -> int:
-    from .build import BuildError, ensure_fmus_built
-    from .studies import run_study
+    from fmu_build.errors import BuildError
+    from orchestration.app.warmup import ensure_fmus_built
+    from orchestration.studies import run_study
 
     problem = _out_problem(args.out) if args.out is not None else None
     if problem:
@@ -283,7 +295,7 @@ def _cmd_study(args) -> int:
 
 
 def _release_stop_signals() -> None:
-    from . import stopping
+    from orchestration import stopping
 
     stopping.uninstall()  # re-raises a Ctrl-C that arrived before the command was known
 
@@ -296,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p_build = sub.add_parser("build", help="build the FMUs into fmus/")
     p_build.add_argument("fmus", nargs="*", help="FMUs to build (default: all available)")
-    p_build.add_argument("--dest", default=str(Path(__file__).resolve().parent.parent / "fmus"))
+    p_build.add_argument("--dest", default=str(DEFAULT_FMU_DIR))
     p_build.set_defaults(func=_cmd_build)
 
     p_val = sub.add_parser("validate", help="check a scene and list every problem")

@@ -2,7 +2,7 @@
 
 All values crossing the protocol are 1-D float64 arrays; integer types, Booleans and enumeration
 values are carried exactly as float64. The FMU is called through the project's FMI 3.0 binding
-(:mod:`orchestration.fmi3`): the hot path (``set_inputs``, ``start_step``, ``finish_step``,
+(:mod:`orchestration.hosts.fmi3`): the hot path (``set_inputs``, ``start_step``, ``finish_step``,
 ``get_outputs``) is the binding's ``push``/``do_step``/``pull`` over preallocated value-reference
 arrays and float64 buffers laid out by :func:`slot_layout`: Float64 ports first, so that all
 observed Float64 ports are read with one ``fmi3GetFloat64`` call straight into the buffer (the
@@ -26,10 +26,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import LOG_LEVELS, FmuBinaryError, FmuCallError
-from .fmi3 import (NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, required_functions,
-                   resource_path, slot_layout)
-from .ports import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
+from orchestration.errors import LOG_LEVELS, FmuBinaryError, FmuCallError
+from orchestration.hosts.fmi3 import NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, required_functions, resource_path, slot_layout
+from orchestration.hosts.description import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 
 logger = logging.getLogger(__name__)
 
@@ -107,7 +106,7 @@ def _needed_in_process(name: str) -> bool:
 class InProcessFmu:
     """One FMU instance loaded into this process through the FMI 3.0 binding.
 
-    ``instance`` is the :class:`~orchestration.fmi3.Fmi3Instance` once instantiated.
+    ``instance`` is the :class:`~orchestration.hosts.fmi3.Fmi3Instance` once instantiated.
     ``log_to_logger=False`` keeps log messages only in ``messages`` (the worker process uses
     that: it sends them to the master, which logs them).
     """
@@ -298,7 +297,7 @@ class InProcessFmu:
 
     def step(self, t: float, h: float) -> StepResult:
         """fmi3DoStep; records its out-flags in ``terminate_requested``, ``early_return`` and
-        ``last_successful_time`` and returns them all (see :class:`~orchestration.fmi3.StepResult`)."""
+        ``last_successful_time`` and returns them all (see :class:`~orchestration.hosts.fmi3.StepResult`)."""
         if self.instance is None:
             self._require_instance("start_step")
         result = StepResult(*self.instance.do_step(t, h))

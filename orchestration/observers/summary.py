@@ -1,7 +1,7 @@
 """The summary of a run: the dict written as ``summary.json`` and the text printed after a run."""
 from __future__ import annotations
 
-from .errors import short_status_name
+from orchestration.errors import short_status_name
 
 #: A run ends "completed", "terminated" (an FMU asked to stop: terminateSimulation), "interrupted"
 #: (Ctrl-C, SIGTERM) or "failed" (a component failed, or results were lost: a write that failed,

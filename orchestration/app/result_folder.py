@@ -59,6 +59,8 @@ import re
 import shutil
 from pathlib import Path
 
+from fmu_build.paths import REPO_ROOT
+
 logger = logging.getLogger(__name__)
 
 #: statuses whose results replace ``<out>``; the others are kept beside it as ``<out>.<status>``
@@ -66,7 +68,7 @@ COMPLETE_STATUSES = ("completed", "terminated")
 #: the files every run writes under the same name (the others are named by the scene)
 FIXED_RESULT_FILES = ("summary.json", "units.json")
 #: the project's own folder (a run into it, or into a folder holding it, would replace the project)
-PROJECT_DIR = Path(__file__).resolve().parent.parent
+PROJECT_DIR = REPO_ROOT
 #: how many of a folder's foreign entries a message names
 _SHOWN = 5
 #: a stream's CSV starts with its quoted header, "time" first (recording.Recorder.add_stream)
