@@ -103,7 +103,7 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
         # symlinks (the shared _fmi.py) become files: an FMU carries everything it imports
         shutil.copytree(package_dir, package_copy, symlinks=False,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc"))
-        _add_build_data(spec, package_copy)
+        add_build_data(spec, package_copy)
         for file in RUNTIME_FILES:
             shutil.copyfile(LAYER / file, resources / file)
         digest = source_digest(sorted(package_copy.rglob("*.py")) + [LAYER / f for f in RUNTIME_FILES + LAYER_SOURCES])
@@ -145,7 +145,7 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
     return final
 
 
-def _add_build_data(spec: FmuSpec, package_copy: Path) -> None:
+def add_build_data(spec: FmuSpec, package_copy: Path) -> None:
     """Data an FMU needs from another component, written at build time (never a code import).
 
     Contact's start values (array sizes, surface triangles and rest positions) are those of the

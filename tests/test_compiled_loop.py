@@ -141,7 +141,7 @@ def test_a_paced_run_is_paced_and_measured_by_the_compiled_loop(built, tmp_path)
     assert loop.stretches >= 0.95 * 300  # a stretch per paced tick: the master's work goes in the waits
     deadlines = summary["deadlines"]
     assert deadlines["haptic_steps"] == python_summary["deadlines"]["haptic_steps"] == haptic_steps
-    pacer = next(o for o in simulation.algorithm.observers if hasattr(o, "paced_block"))
+    pacer = next(o for o in simulation.algorithm.observers if o.paces)
     assert len(pacer.lateness) == haptic_steps
     assert min(pacer.lateness) >= -0.001 - 1e-9  # a step starts at its time, so ends at most 1 ms early
     assert summary["wall_time_s"] >= 0.3 - 0.001
@@ -156,7 +156,7 @@ def test_a_paced_runs_clock_starts_at_its_first_paced_step_inside_a_program(buil
     simulation, summary = _run(scene, tmp_path, True, realtime=True, hosting="in-process")
     assert summary["status"] == "completed"
     assert "tissue" in {m.comp.name for m in simulation.algorithm.compiled_loop.members.values()}
-    pacer = next(o for o in simulation.algorithm.observers if hasattr(o, "paced_block"))
+    pacer = next(o for o in simulation.algorithm.observers if o.paces)
     tissue_busy = summary["components"]["tissue"]["busy_wall_s"]
     assert pacer.lateness[0] < 0.3 * tissue_busy, (pacer.lateness[:3], tissue_busy)
 

@@ -97,7 +97,7 @@ def test_implausible_output_makes_a_warning_and_a_count():
     ports = {"position": PortInfo("position", "output", "Float64", unit="m", shape=(3,)),
              "force": PortInfo("force", "output", "Float64", unit="N", shape=(3,))}
     spec = SimpleNamespace(name="device", is_continuous=False, ports=ports)
-    from orchestration.observers.observers_all import Statistics
+    from orchestration.observers.statistics import Statistics
     import numpy as np
 
     statistics = Statistics(SimpleNamespace(summary={}, components={"device": spec}))

@@ -36,7 +36,7 @@ def test_an_output_without_a_range_is_held_to_the_range_of_the_inputs_it_feeds()
     each limit (Tissue declares no range for its compliance; Contact's input does)."""
     from types import SimpleNamespace
 
-    from orchestration.observers.observers_all import plausible_range
+    from orchestration.observers.plausibility import plausible_range
 
     def port(minimum=None, maximum=None, unit="m/N"):
         return SimpleNamespace(causality="output", type="Float64", minimum=minimum, maximum=maximum, unit=unit)
@@ -68,6 +68,6 @@ def test_the_rendered_force_limit_lies_within_what_the_run_calls_plausible():
     (1e4 N): an unlimited study's force is not reported as implausible for the limit alone."""
     from haptic_fmu.fmu import LIMITS
 
-    from orchestration.observers.observers_all import PLAUSIBLE_MAGNITUDE
+    from orchestration.observers.plausibility import PLAUSIBLE_MAGNITUDE
 
     assert LIMITS["max_force"].maximum < PLAUSIBLE_MAGNITUDE["N"][0]

@@ -14,6 +14,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
+from orchestration.observers.base import Observer
 from orchestration.run.simulation import run_scene
 from orchestration.observers.recorder import read_stream
 from orchestration.scene.model import SceneError
@@ -201,7 +202,7 @@ def test_an_algebraic_loop_of_gauss_seidel_connections_is_rejected(synthetic_fmu
 def test_the_remembered_schedule_steps_exactly_as_deciding_afresh(synthetic_fmus, tmp_path, monkeypatch):
     """The schedule is decided once per relative state and then looked up; deciding every call
     afresh (no memory) must give byte-identical results, across rates that share no step."""
-    from orchestration.run import algorithm
+    from orchestration.plan import schedule
 
     data = signal_echo_scene(synthetic_fmus, 0.001, "1/30", "average", "jacobi", duration=0.6)
     data["fmu"]["echo2"] = {"path": str(synthetic_fmus["Echo"]), "step": "1/70"}
@@ -211,7 +212,7 @@ def test_the_remembered_schedule_steps_exactly_as_deciding_afresh(synthetic_fmus
     names = ("echo.csv", "echo2.csv", "signal.csv")
     (tmp_path / "cached").mkdir()
     run(data, tmp_path / "cached")
-    monkeypatch.setattr(algorithm, "_SCHEDULE_CACHE_LIMIT", 0)
+    monkeypatch.setattr(schedule, "MEMO_LIMIT", 0)
     (tmp_path / "fresh").mkdir()
     run(data, tmp_path / "fresh")
     for name in names:
@@ -283,8 +284,11 @@ def test_a_run_whose_row_writer_dies_keeps_every_row_and_says_so(tmp_path, monke
         assert np.array_equal(t, np.arange(501) / 1000), name  # every 1 kHz row, none twice
 
 
-class _StepTrace:
+class _StepTrace(Observer):
     """An observer that notes when each component's step starts and when its outputs arrive."""
+
+    times_steps = True
+    names_its_ports = False
 
     def __init__(self):
         self.events: list[tuple[str, str, int]] = []
@@ -316,7 +320,7 @@ def _run_signal_echo(synthetic_fmus, tmp_path, hosts: dict, observers: list) -> 
         algorithm.initialize()
         algorithm.run(lambda: 0.0)
     finally:
-        algorithm.notify("finished")
+        algorithm.finished()
         algorithm.teardown()
 
 
@@ -360,9 +364,9 @@ def test_a_paced_runs_clock_starts_at_its_first_step(synthetic_fmus, tmp_path):
     """--realtime: what the observers do when the run starts (the progress bar's import of tqdm
     took 6-7 ms) does not make the first haptic steps late."""
     from orchestration.hosts.in_process import InProcessFmu
-    from orchestration.observers.observers_all import RealtimePacing
+    from orchestration.observers.pacing import RealtimePacing
 
-    class SlowStart:
+    class SlowStart(Observer):
         def started(self, algorithm):
             time.sleep(0.05)
 
@@ -377,13 +381,13 @@ def test_a_paced_run_keeps_its_workers_off_the_masters_cpu(synthetic_fmus, tmp_p
     """--realtime: this process keeps one CPU, the worker gets another, and this process has all
     its CPUs back once the run is finished (the master notifies "finished" however a run ends)."""
     from orchestration.hosts.in_process import InProcessFmu
-    from orchestration.observers.observers_all import RealtimePacing
+    from orchestration.observers.pacing import RealtimePacing
     from orchestration.hosts.worker import WorkerFmu
 
     before = os.sched_getaffinity(0)
     seen = {}
 
-    class Probe:
+    class Probe(Observer):
         def started(self, algorithm):
             seen["master"] = os.sched_getaffinity(0)
             seen["worker"] = os.sched_getaffinity(algorithm.components["signal"].host.pid)

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from orchestration.observers.observers_all import BLOCK_FOLD_ROWS, Statistics
+from orchestration.observers.statistics import BLOCK_FOLD_ROWS, Statistics
 
 BASE = 3000  # ticks per second
 STEP = 3     # the component's step in ticks

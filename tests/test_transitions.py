@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from orchestration.plan import transitions as tr
-from orchestration.run.simulation import tick_base
+from orchestration.run.algorithm import tick_base
 from orchestration.scene.loading import scene_from_dict
 
 

@@ -161,8 +161,8 @@ def warm_run(fmu_dir: str | None = None) -> int:
     Some kernels first run late (the non-linear ETMM tensors once the wall strains past their
     threshold, about 0.7 s after the first contact), so a shorter run leaves them to the user's.
     """
-    from orchestration.app.master import run_scene
-    from orchestration.app.scene import load_scene
+    from orchestration.run.simulation import run_scene
+    from orchestration.scene.loading import load_scene
 
     scene_file = SCENE_DIR / "aaa_endovascular.toml"
     with tempfile.TemporaryDirectory(prefix="aaa_cosim_warm_") as tmp:

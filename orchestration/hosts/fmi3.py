@@ -448,7 +448,7 @@ class Fmi3Instance:
         self._update_callback = IntermediateUpdateCallback()       # NULL: no intermediate updates
         # the instance's address (a Python int converts to a pointer argument faster than a c_void_p)
         self._handle: int | None = None
-        self._live: int | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
+        self.live_handle: int | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
         self._inputs: list[_InputPort] = []
         self._input_ports: dict[str, _InputPort] = {}
         self._input_index: dict[str, int] = {}
@@ -471,9 +471,9 @@ class Fmi3Instance:
                               visible, logging_on, False, False, None, 0, None,
                               self._log_callback, self._update_callback)
         if not address:
-            reason = self._logged_reason(mark) if len(self.messages) > mark else "it returned NULL and logged no reason"
+            reason = self.logged_reason(mark) if len(self.messages) > mark else "it returned NULL and logged no reason"
             raise FmuCallError(name, "fmi3InstantiateCoSimulation", None, reason)
-        self._handle = self._live = int(address)
+        self._handle = self.live_handle = int(address)
 
     # -- errors ------------------------------------------------------------------------------------
     def _log(self, environment, status, category, message) -> None:
@@ -487,7 +487,7 @@ class Fmi3Instance:
         except Exception:  # never raise into the FMU's C code
             pass
 
-    def _logged_reason(self, mark: int) -> str:
+    def logged_reason(self, mark: int) -> str:
         """The last error (else warning) message logged since ``mark``, else the last error ever."""
         recent = self.messages[mark:]
         for threshold in (FMI_ERROR, FMI_WARNING):
@@ -499,7 +499,7 @@ class Fmi3Instance:
                 return text
         return "the FMU logged no reason"
 
-    def _check(self, call: str, status: int, mark: int) -> None:
+    def check_status(self, call: str, status: int, mark: int) -> None:
         """Raise unless ``status`` is OK/Warning and no error-level message was logged since ``mark``.
 
         An FMU that logs an error but returns OK from a call is reported at that call, where the
@@ -510,11 +510,11 @@ class Fmi3Instance:
                 self.failed = True
             if status >= FMI_FATAL:
                 self.fatal = True
-                self._live = None
-            raise FmuCallError(self.name, call, self.time, self._logged_reason(mark), status)
+                self.live_handle = None
+            raise FmuCallError(self.name, call, self.time, self.logged_reason(mark), status)
         logged = max((s for s, _ in self.messages[mark:]), default=FMI_OK)
         if logged >= FMI_ERROR:
-            raise FmuCallError(self.name, call, self.time, self._logged_reason(mark), logged)
+            raise FmuCallError(self.name, call, self.time, self.logged_reason(mark), logged)
 
     def _function(self, name: str):
         function = self._functions.get(name)
@@ -536,7 +536,7 @@ class Fmi3Instance:
         function = self._function(name)
         mark = len(self.messages)
         status = function(handle, *args)
-        self._check(f"{name}({label})" if label else name, status, mark)
+        self.check_status(f"{name}({label})" if label else name, status, mark)
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def enter_configuration_mode(self) -> None:
@@ -563,7 +563,7 @@ class Fmi3Instance:
 
     def free(self) -> None:
         """fmi3FreeInstance (idempotent; skipped after fmi3Fatal, when the standard allows no call)."""
-        handle, self._handle, self._live = self._handle, None, None
+        handle, self._handle, self.live_handle = self._handle, None, None
         self.unbind()
         if handle is not None and not self.fatal:
             self._function("fmi3FreeInstance")(handle)
@@ -589,17 +589,17 @@ class Fmi3Instance:
         if fmi_type == "String":
             values = (ctypes.c_char_p * n_values)()
             status = function(handle, refs, len(vrs), values, n_values)
-            self._check(call, status, mark)
+            self.check_status(call, status, mark)
             return [(v or b"").decode("utf-8") for v in values]
         if fmi_type == "Binary":
             sizes = (ctypes.c_size_t * n_values)()
             values = (c_binary * n_values)()
             status = function(handle, refs, len(vrs), sizes, values, n_values)
-            self._check(call, status, mark)
+            self.check_status(call, status, mark)
             return [ctypes.string_at(v, s) if s else b"" for v, s in zip(values, sizes)]
         out = np.zeros(n_values, dtype=NATIVE_DTYPES[fmi_type])
         status = function(handle, refs, len(vrs), _pointer(out, fmi_type), n_values)
-        self._check(call, status, mark)
+        self.check_status(call, status, mark)
         return out
 
     def set(self, fmi_type: str, vrs: Sequence[int], values, label: str | None = None) -> None:
@@ -619,7 +619,7 @@ class Fmi3Instance:
         else:
             array = np.ascontiguousarray(np.asarray(values).reshape(-1), dtype=NATIVE_DTYPES[fmi_type])
             status = function(handle, refs, len(vrs), _pointer(array, fmi_type), array.size)
-        self._check(call, status, mark)
+        self.check_status(call, status, mark)
 
     # -- the hot path ------------------------------------------------------------------------------
     def bind(self, ports: Mapping[str, PortLike], inputs: Sequence[str], observed: Sequence[str],
@@ -726,21 +726,21 @@ class Fmi3Instance:
             if port.exact and not np.array_equal(port.native, port.slot):
                 raise ValueError(f"{self.name}.{port.name} takes whole numbers"
                                  f"{' (0 or 1)' if port.native.dtype == np.bool_ else ''}; got {port.slot.tolist()}")
-        handle = self._live
+        handle = self.live_handle
         if handle is None:
             self._require("push")
         messages = self.messages
         mark = len(messages)
         status = port.setter(handle, port.vr, 1, port.pointer, port.size)
         if status or len(messages) != mark:
-            self._check(port.call, status, mark)
+            self.check_status(port.call, status, mark)
 
     #: Write one bound input's slot to the FMU (``port`` from :attr:`input_ports`).
     push_port = _push
 
     def pull(self) -> None:
         """Read every observed port into the output buffer."""
-        handle = self._live
+        handle = self.live_handle
         if handle is None:
             self._require("pull")
         messages = self.messages
@@ -748,13 +748,13 @@ class Fmi3Instance:
             mark = len(messages)
             status = group.getter(handle, group.vrs, group.count, group.pointer, group.size)
             if status or len(messages) != mark:
-                self._check(group.call, status, mark)
+                self.check_status(group.call, status, mark)
             if group.cast:
                 if group.wide and not _exact_in_float64(group.native):
-                    self._refuse_wide(group)
+                    self.refuse_wide(group)
                 np.copyto(group.slot, group.native, casting="unsafe")
 
-    def _refuse_wide(self, group: _OutputGroup) -> None:
+    def refuse_wide(self, group: _OutputGroup) -> None:
         for name, a, b in group.names:
             values = group.native[a:b]
             if not _exact_in_float64(values):
@@ -768,7 +768,7 @@ class Fmi3Instance:
         terminate_requested, early_return, last_successful_time)`` (see :class:`StepResult` and the
         module's notes on fmi3Discard). ``last_successful_time`` is the FMU's when it returned early
         or asked to terminate, else ``t + h``."""
-        handle = self._live
+        handle = self.live_handle
         if handle is None:
             self._require("fmi3DoStep")
         messages = self.messages
@@ -776,7 +776,7 @@ class Fmi3Instance:
         refs = self._step_refs  # (indexed, not *refs: a star call builds a list)
         status = self._do_step_raw(handle, t, h, no_set_fmu_state_prior, refs[0], refs[1], refs[2], refs[3])
         if status or len(messages) != mark:
-            self._step_problem(t, status, mark)
+            self.step_problem(t, status, mark)
         if self._flag_word.value:
             event, terminate, early, _ = self._flags
             last = self.time = self._last_time.value if terminate or early else t + h
@@ -787,18 +787,18 @@ class Fmi3Instance:
     def _no_do_step(self, *args) -> None:
         self._function("fmi3DoStep")  # raises: the binary does not export it
 
-    def _step_problem(self, t: float, status: int, mark: int) -> None:
+    def step_problem(self, t: float, status: int, mark: int) -> None:
         """Raise for a failed fmi3DoStep, unless it is fmi3Discard with terminateSimulation."""
         self.time = t
         if status == FMI_DISCARD:
             if self._flags[1]:
                 return
             messages = self.messages
-            reason = self._logged_reason(mark) if len(messages) > mark else "the FMU logged no reason"
+            reason = self.logged_reason(mark) if len(messages) > mark else "the FMU logged no reason"
             raise FmuCallError(self.name, "fmi3DoStep", t,
                                f"{reason} (fmi3Discard without terminateSimulation: the FMU could not complete the "
                                "step, and the master does not retry with a smaller one)", status)
-        self._check("fmi3DoStep", status, mark)
+        self.check_status("fmi3DoStep", status, mark)
 
 
 def resource_path(unzip_dir: Path | str) -> str:

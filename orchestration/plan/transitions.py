@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from collections import deque
+from enum import Enum
 
 import numpy as np
 
@@ -226,17 +227,36 @@ def extrapolate(history: SampleHistory, tau: int) -> np.ndarray:
 
 
 # -- the registry: one class per transition, used by the scene checks and by the master -----------
+class Compiled(Enum):
+    """How the compiled loop (``orchestration.run.compiled_loop``) makes a transition's value
+    between two components it steps: what a transition declares, never inferred from its class."""
+
+    #: the latest sample by tau, as it is (``hold``)
+    LATEST = "latest"
+    #: the mean of the window the program sums as the samples arrive (``average``)
+    WINDOW_MEAN = "window mean"
+
+
 class Transition:
     """A rate transition on one connection: the value its consumer reads at tick ``tau``.
 
     A subclass gives ``name`` (the scene's ``transition = "..."``), ``value`` and, where the
     transition only makes sense for some rates, ``scene_problem``. ``keyed`` transitions return
     the tick of the sample they pass on, so the master sets the input only when that changes.
+    ``compiled`` says how the compiled loop makes the same value in C; a class that does not
+    declare it in its own body (a subclass of ``Hold`` too) has None, and its connections between
+    in-process components are then stepped in Python.
     """
 
     name: str = ""
     summary: str = ""
     keyed: bool = False
+    compiled: Compiled | None = None
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "compiled" not in cls.__dict__:
+            cls.compiled = None
 
     def __init__(self, producer_step: int, consumer_step: int):
         self.consumer_step = int(consumer_step)
@@ -258,6 +278,7 @@ class Transition:
 
 class Hold(Transition):
     name, summary, keyed = "hold", "the latest sample", True
+    compiled = Compiled.LATEST
 
     def value(self, tau):
         return hold(self.history, tau)
@@ -279,6 +300,7 @@ class Extrapolate(Transition):
 
 class Average(Transition):
     name, summary = "average", "the mean of the samples within the consumer's step"
+    compiled = Compiled.WINDOW_MEAN
 
     @staticmethod
     def new_history(producer_step, consumer_step):

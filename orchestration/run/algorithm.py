@@ -8,33 +8,30 @@ ticks of 1/3000 s: the tissue steps 100 ticks, the haptic loop 3). An FMU is cal
 Which value a consumer sees. A consumer stepping ``[t, t + h]`` evaluates each input connection at
 tick ``tau``: ``tau = t`` for a ``jacobi`` connection (the producer's samples up to the start of the
 step) and ``tau = t + h`` for ``gauss-seidel`` (up to the end: the producer steps first). The rate
-transition (:mod:`.transitions`) turns the producer's samples at ticks ``<= tau`` into the value.
+transition (:mod:`orchestration.plan.transitions`) turns the producer's samples at ticks ``<= tau`` into the value.
 So a step can start as soon as each producer has reached the last of its grid points ``<= tau``;
 that is the only scheduling rule, and the values a component receives depend on nothing else.
 Hence the result is the same whether components step one after another in this process or
 concurrently in worker processes: a ``jacobi`` connection from the 30 Hz tissue lets its 33 ms
 step run while the 1 kHz loop goes on.
 
-The schedule. Which call comes next is a function of the components' tick counts relative to
-the slowest one, of the phase within the hyperperiod and of which steps are in flight; the
-decision is computed once per such state and then looked up (a 1 kHz loop beside a 30 Hz tissue
-has 300 ticks of hyperperiod and a few hundred states), so the per-tick work is a table lookup,
-the input routes and the output fan-out precomputed per component. A step of a host that is
-``asynchronous`` (a worker process) is started as soon as it may, after the in-process steps of
-the same tick, and collected as soon as it is done (looked at every few calls) or when a
+The schedule (:mod:`orchestration.plan.schedule`) says which call comes next. A step of a host
+that is ``asynchronous`` (a worker process) is started as soon as it may, after the in-process
+steps of the same tick, and collected as soon as it is done (looked at every few calls) or when a
 consumer needs it, whichever comes first: values depend on ticks only, so when is a matter of
-wall time, and early is off the tick that needs the result.
+wall time, and early is off the tick that needs the result. The input routes and the output
+fan-out are precomputed per component.
 
 Initialization propagates outputs to inputs before the first step: components leave
 initialization mode in the order of their connections (producers first), each receiving the
 initial outputs of those already initialized, including parameters such as the surface triangles.
 
-Observers (:mod:`.observers`) see every step's outputs; the algorithm knows nothing of files,
+Observers (:class:`~orchestration.observers.base.Observer`) see every step's outputs; the algorithm knows nothing of files,
 statistics or wall-clock pacing.
 
 The compiled loop (:mod:`.compiled_loop`) makes the stretches of in-process steps between two
 events that need this module (a worker's step starting or collected) in C: planned with
-:meth:`MultirateAlgorithm._decide_at` and these routing rules, replayed into the histories and
+:meth:`~orchestration.plan.schedule.Schedule.decide_at` and these routing rules, replayed into the histories and
 observers afterwards; the same calls with the same values as stepping here (tested bitwise).
 """
 from __future__ import annotations
@@ -43,18 +40,19 @@ import logging
 import math
 from dataclasses import dataclass, field
 from fractions import Fraction
-from typing import Callable, Protocol
+from typing import Callable
 
 import numpy as np
 
 from orchestration.plan import transitions as tr
 from orchestration.errors import FmuCallError, OrchestrationError
+from orchestration.observers.base import Observer
+from orchestration.plan.schedule import Schedule
+from orchestration.run.compiled_loop import CompiledLoop, load_program_runner
 from orchestration.scene.model import ComponentSpec, ConnectionSpec, Scene
 
 logger = logging.getLogger(__name__)
 
-#: Most schedule states remembered; a pathological rate mix beyond that is decided afresh each time.
-_SCHEDULE_CACHE_LIMIT = 200_000
 #: Asynchronous steps are looked at (a poll without waiting, about 1 us) every this many events + 1.
 _POLL_EVERY_MASK = 3
 
@@ -70,26 +68,6 @@ class RunTerminated(OrchestrationError):
         self.component = component
         self.time = time
         super().__init__(f"{component} requested terminateSimulation at t = {time:.6g} s")
-
-
-class Observer(Protocol):
-    """What the algorithm notifies; every method is optional (see :mod:`.observers`).
-
-    ``ports(name)`` lists the ports of a component it reads; it is then notified of that
-    component's steps (``subscribes(component)`` decides otherwise): ``before_step(component,
-    tick)`` and ``stepped(component, tick, outputs)``, the outputs valid only during the call.
-    ``initializing``, ``initialized``, ``started`` and ``finished`` take the algorithm.
-
-    After a compiled stretch (:mod:`.compiled_loop`) the steps are reported component by
-    component, each one's in time order: ``stepped_block(component, ticks, outputs, first_step)``
-    with a row per step in ``outputs[port]`` where an observer has it, else ``stepped`` per step.
-    An observer that times steps (``before_step``) keeps the run out of the compiled loop, unless it
-    is the real-time pacing, which the compiled program does itself and reports with
-    ``paced_block(component, lateness)`` (see :class:`.observers.RealtimePacing`).
-    """
-
-    def ports(self, component: str) -> list[str]: ...
-    def stepped(self, component: "Component", tick: int, outputs: dict[str, np.ndarray]) -> None: ...
 
 
 @dataclass(eq=False)
@@ -176,6 +154,9 @@ class MultirateAlgorithm:
         self.end = int(self.duration * self.base)
         self.make_host = make_host
         self.observers = list(observers)
+        for observer in self.observers:
+            if not isinstance(observer, Observer):
+                raise TypeError(f"{observer!r} is no observer: subclass orchestration.observers.base.Observer")
         self.extra_observed = dict(extra_observed or {})
         self.components: dict[str, Component] = {}
         self.ordered: list[Component] = []
@@ -187,10 +168,8 @@ class MultirateAlgorithm:
         #: set when a component asked to end the run; the others finish the steps that end by then
         self.terminated: RunTerminated | None = None
         self._source_cache: dict[str, tuple[int, dict]] = {}
-        self._schedule: dict = {}
-        self._cache_until = -1  # set by run(): decisions before this tick are remembered
-        self._period = 1        # set by run(): the hyperperiod of the components' steps, in ticks
-        self._lookahead = 1     # set by run(): how far ahead of the slowest a component may step
+        #: which call comes next (set by run(): the components' steps are known by then)
+        self.schedule: Schedule | None = None
         #: run stretches of in-process steps in C (:mod:`.compiled_loop`) where the components allow it
         self.use_compiled_loop = compiled_loop
         #: the compiled loop of the run (None: every step in Python); its ``steps`` count what it made
@@ -227,8 +206,6 @@ class MultirateAlgorithm:
     def setup(self) -> None:
         """Resolve routes, create and instantiate the hosts, set parameters, enter initialization."""
         if self.use_compiled_loop:  # built or loaded now, as the FMUs are, not in the run's time
-            from orchestration.run.compiled_loop import load_program_runner
-
             load_program_runner()
         scene = self.scene
         stepped = [s for s in scene.components.values() if not s.is_continuous]
@@ -261,14 +238,12 @@ class MultirateAlgorithm:
             target.routes.append(route)
         for observer in self.observers:
             for comp in self.ordered:
-                wanted = observer.ports(comp.name) if hasattr(observer, "ports") else []
-                for port in wanted:
+                for port in observer.ports(comp.name):
                     _add(comp.observed, port)
-                subscribes = observer.subscribes(comp) if hasattr(observer, "subscribes") else bool(wanted)
-                if subscribes and hasattr(observer, "stepped"):
+                if observer.subscribes(comp):
                     comp.listeners.append(observer.stepped)
-                if subscribes and hasattr(observer, "before_step"):
-                    comp.pre_step.append(observer.before_step)
+                    if observer.times_steps:
+                        comp.pre_step.append(observer.before_step)
         for name, ports in self.extra_observed.items():
             if name not in self.components:
                 raise OrchestrationError(f"observe: no stepped component {name!r} in the scene")
@@ -292,16 +267,15 @@ class MultirateAlgorithm:
                 call(comp, "set parameters", 0.0, lambda c=comp: c.host.set_values(c.spec.parameters))
             call(comp, "fmi3EnterInitializationMode", 0.0, lambda c=comp: c.host.enter_initialization(0.0))
 
-    def notify(self, hook: str) -> None:
-        """Call ``hook(self)`` on every observer that has it (initializing, initialized, started, finished)."""
+    def finished(self) -> None:
+        """Tell every observer that the run ended (however it ended)."""
         for observer in self.observers:
-            method = getattr(observer, hook, None)
-            if method is not None:
-                method(self)
+            observer.finished(self)
 
     def initialize(self) -> None:
         """Leave initialization mode producer-first, propagating initial outputs (and parameters)."""
-        self.notify("initializing")
+        for observer in self.observers:
+            observer.initializing(self)
         done: set[str] = set()
         for comp in self.ordered:
             self.check_stop()
@@ -330,7 +304,8 @@ class MultirateAlgorithm:
             outputs = call(comp, "get outputs", 0.0, comp.host.get_outputs)
             self._store(comp, 0, outputs)
             done.add(comp.name)
-        self.notify("initialized")
+        for observer in self.observers:
+            observer.initialized(self)
 
     def get_values(self, component: str, names: list[str]) -> dict[str, np.ndarray]:
         """Values of any readable variables of a component (between steps; not the hot path)."""
@@ -406,7 +381,7 @@ class MultirateAlgorithm:
             route.history.prune(consumer.time - 2 * comp.step - consumer.step)
 
     # -- stepping --------------------------------------------------------------------------------
-    def _start(self, comp: Component, clock) -> None:
+    def start_step(self, comp: Component, clock) -> None:
         t = comp.time
         for hook in comp.pre_step:
             hook(comp, t)
@@ -421,7 +396,7 @@ class MultirateAlgorithm:
         except Exception as exc:
             raise FmuCallError(comp.name, "fmi3DoStep", ts, f"{type(exc).__name__}: {exc}") from exc
 
-    def _finish(self, comp: Component, clock) -> None:
+    def finish_step(self, comp: Component, clock) -> None:
         t = comp.time
         try:
             outputs = comp.host.finish_step()
@@ -441,31 +416,24 @@ class MultirateAlgorithm:
     def _end_at(self, tick: int) -> None:
         """End the run at ``tick``: each component makes the steps that end by then, none beyond."""
         self.end = tick
-        self._cache_until = -1  # decisions near the end are not remembered
+        if self.schedule is not None:
+            self.schedule.forget()  # decisions near the end are not remembered
         for c in self.ordered:
             c.end = max(c.time, (tick // c.step) * c.step)
 
     def run(self, clock, progress: Callable[[int], None] | None = None) -> None:
         """Step until every component has reached the end; ``progress(tick)`` now and then."""
         comps = self.ordered
-        schedule = self._schedule
-        period = 1
-        for comp in comps:
-            period = math.lcm(period, comp.step)
-        lookahead = 2 * max((c.step for c in comps), default=1)
-        self._period, self._lookahead = period, lookahead
-        # Beyond this tick the end of the run changes decisions: they are no longer remembered.
-        self._cache_until = self.end - 3 * lookahead
+        schedule = self.schedule = Schedule(comps, self.end, self.seconds)
         events = 0
         asynchronous = [c for c in comps if c.asynchronous]
         loop = None
         if self.use_compiled_loop:
-            from orchestration.run.compiled_loop import CompiledLoop
-
             loop = self.compiled_loop = CompiledLoop.for_algorithm(self)
         members = loop.members if loop is not None else {}
         stretched = False
-        self.notify("started")
+        for observer in self.observers:
+            observer.started(self)
         while True:
             if self.stop_reason:
                 raise RunInterrupted(self.stop_reason)
@@ -476,17 +444,8 @@ class MultirateAlgorithm:
                 # ticks instead of inside the one that also takes in the new frame.
                 for comp in asynchronous:
                     if comp.running and comp.host.step_done():
-                        self._finish(comp, clock)
-            t_min = min(c.time for c in comps) if comps else self.end
-            if t_min < self._cache_until and comps:
-                key = (t_min % period, *[c.time - t_min for c in comps], *[c.running for c in comps])
-                decision = schedule.get(key)
-                if decision is None:
-                    decision = self._decide(lookahead)
-                    if len(schedule) < _SCHEDULE_CACHE_LIMIT:
-                        schedule[key] = decision
-            else:
-                decision = self._decide(lookahead)
+                        self.finish_step(comp, clock)
+            decision = schedule.next()
             if decision is None:
                 break
             start, index = decision
@@ -500,11 +459,11 @@ class MultirateAlgorithm:
                         progress(self.reached)
                     continue
             if start:
-                self._start(comp, clock)
+                self.start_step(comp, clock)
                 if not comp.asynchronous:
-                    self._finish(comp, clock)
+                    self.finish_step(comp, clock)
             else:
-                self._finish(comp, clock)
+                self.finish_step(comp, clock)
             events += 1
             if progress is not None and not events & 63:
                 progress(self.reached)
@@ -512,49 +471,6 @@ class MultirateAlgorithm:
             progress(self.reached)
         if self.terminated is not None:
             raise self.terminated
-
-    def _decide(self, lookahead: int) -> tuple[bool, int] | None:
-        """The next call: (True, i) starts component i's step, (False, i) collects it; None: done."""
-        return self._decide_at([c.time for c in self.ordered], [c.running for c in self.ordered], lookahead)
-
-    def _decide_at(self, times: list[int], running: list[bool], lookahead: int) -> tuple[bool, int] | None:
-        """The decision of :meth:`_decide` for the components at ``times`` (ticks reached) with the
-        steps ``running`` in flight: a function of these alone (the compiled loop plans with it)."""
-        comps = self.ordered
-        pending = [i for i, c in enumerate(comps) if times[i] < c.end or running[i]]
-        if not pending:
-            return None
-        t_min = min(times[i] for i in pending)
-        best = None
-        for i in pending:
-            c = comps[i]
-            if running[i] or times[i] >= c.end or times[i] - t_min > lookahead or not self._ready_at(c, times):
-                continue
-            # Earliest first; at the same tick the steps done here go before a worker's start,
-            # which has a whole step to run and would hold up this tick (at a 30 Hz frame: its
-            # averaged inputs, the copy into shared memory) for a few tenths of a millisecond.
-            if best is None or (times[i], c.asynchronous, c.rank) < (times[best], comps[best].asynchronous,
-                                                                     comps[best].rank):
-                best = i
-        if best is not None:
-            return True, comps[best].rank
-        in_flight = [i for i in pending if running[i]]
-        if in_flight:
-            return False, comps[min(in_flight, key=lambda i: (times[i], comps[i].rank))].rank
-        stuck = ", ".join(f"{comps[i].name} at t = {self.seconds(times[i]):.6g} s" for i in pending)
-        raise OrchestrationError(f"no component can step ({stuck}); this is a bug in the scene checks")
-
-    @staticmethod
-    def _ready_at(comp: Component, times: list[int]) -> bool:
-        for route in comp.routes:
-            producer = route.producer
-            if producer is None or route.history is None:
-                continue
-            tau = times[comp.rank] + route.need_offset
-            need = min((tau // producer.step) * producer.step, producer.end)
-            if times[producer.rank] < need:
-                return False
-        return True
 
     # -- the end ---------------------------------------------------------------------------------
     def keep_outputs(self) -> dict[str, dict[str, np.ndarray]]:

@@ -7,7 +7,7 @@ scene, the catheter and the contact at 1 kHz for the 33 or 34 ticks between two 
 ending where they began in the hyperperiod (so that the next stretch runs the same program).
 Python's cost per step (routing values, reading outputs, filling histories) is about twice the
 models' own. Here each stretch is planned by the algorithm's own scheduler
-(:meth:`MultirateAlgorithm._decide_at`) and routing rules, and written as a flat program of FMI
+(:meth:`~orchestration.plan.schedule.Schedule.decide_at`) and routing rules, and written as a flat program of FMI
 calls and copies that C runs in one go:
 
 * the steps, in the order the scheduler makes them, each ``fmi3Set*`` of an input connection
@@ -49,7 +49,7 @@ from fmu_build.paths import BUILD_DIR
 from orchestration.plan import transitions as tr
 from orchestration.errors import FmuCallError
 from orchestration.hosts.fmi3 import Fmi3Instance
-from orchestration.observers.observers_all import SPIN_S
+from orchestration.observers.pacing import SPIN_S
 
 logger = logging.getLogger(__name__)
 
@@ -204,8 +204,7 @@ class CompiledLoop:
         self.algorithm = algorithm
         self._run_program = run_program
         comps = algorithm.ordered
-        pacers = {id(observer): observer for c in comps for hook in c.pre_step
-                  if _is_pacer(observer := getattr(hook, "__self__", None))}
+        pacers = {id(hook.__self__): hook.__self__ for c in comps for hook in c.pre_step if hook.__self__.paces}
         #: the real-time pacing, which the program does for the steps it paces (one at most)
         self.pacer = next(iter(pacers.values())) if len(pacers) == 1 else None
         self._pacing = _Pacing(0.0, 0, 0, 0, SPIN_S, None)
@@ -224,7 +223,7 @@ class CompiledLoop:
             changed = False
             for rank, member in list(self.members.items()):
                 if any(r.producer is not None and r.producer.rank in self.members and (
-                        not isinstance(r.transition, (tr.Hold, tr.Average)) or member.last_values[r].size !=
+                        r.transition.compiled is None or member.last_values[r].size !=
                         self.members[r.producer.rank].instance.output_views[r.spec.source_port].size)
                        for r in member.routes):
                     del self.members[rank]
@@ -255,14 +254,12 @@ class CompiledLoop:
             return False
         if "fmi3DoStep" not in instance.library.functions:
             return False  # the Python path reports it
-        if not all(_is_pacer(getattr(hook, "__self__", None)) for hook in comp.pre_step):
+        if not all(hook.__self__.paces for hook in comp.pre_step):
             return False  # someone times each step: only the real-time pacing is done in the program
         for listener in comp.listeners:
-            observer = getattr(listener, "__self__", None)
-            if _is_pacer(observer):
-                continue
-            if observer is None or not hasattr(observer, "ports") or hasattr(observer, "subscribes"):
-                return False  # an observer that reads ports it does not name
+            observer = listener.__self__
+            if not observer.paces and not observer.names_its_ports:
+                return False  # an observer that may read ports it does not name
         for histories in comp.histories.values():
             if any(type(h) not in (tr.SampleHistory, tr.WindowSums) for h in histories):
                 return False
@@ -281,7 +278,7 @@ class CompiledLoop:
         instance = comp.host.instance
         member = _Member(comp, instance)
         record = self._records[comp.rank]
-        record.instance = instance._live
+        record.instance = instance.live_handle
         record.do_step = _address(instance.library.functions["fmi3DoStep"])
         record.logged_errors = _address(instance.logged_errors)
         record.step = comp.step
@@ -306,7 +303,7 @@ class CompiledLoop:
             self._port_objects.append(group)
         member.step_ops = tuple(step_ops) + (OP_END, comp.rank, 0, 0)
         # The tape: the observed output buffer's ranges that hold what histories keep and observers read.
-        member.listeners = [listener for listener in comp.listeners if not _is_pacer(listener.__self__)]
+        member.listeners = [listener for listener in comp.listeners if not listener.__self__.paces]
         member.paced = self.pacer is not None and self.pacer.paced(comp)
         wanted: list[str] = []
         for listener in member.listeners:
@@ -351,21 +348,21 @@ class CompiledLoop:
         the slowest component's; how far they reach; their program once made and kept; whether the
         plan is remembered for its schedule state (not near the end of the run)."""
         algorithm = self.algorithm
+        schedule = algorithm.schedule
         comps = algorithm.ordered
         times = [c.time for c in comps]
         running = [c.running for c in comps]
         t_min = min(times)
         key = None
-        if t_min < algorithm._cache_until:
-            key = (t_min % algorithm._period, *[t - t_min for t in times], *running)
+        if t_min < schedule.memo_until:
+            key = (t_min % schedule.period, *[t - t_min for t in times], *running)
             cached = self._plans.get(key)
-            if cached is not None and t_min + cached[1] <= algorithm._cache_until:
+            if cached is not None and t_min + cached[1] <= schedule.memo_until:
                 return cached
         members = self.members
         steps: list[tuple[int, int]] = []
         counts = dict.fromkeys(members, 0)
-        lookahead = algorithm._lookahead
-        period = algorithm._period
+        period = schedule.period
         paced_tick = None
         aligned = None  # (steps, times) where every component last stood at one multiple of the period
         while True:
@@ -373,7 +370,7 @@ class CompiledLoop:
                 aligned = (len(steps), list(times))
             full = len(steps) == MAX_STEPS
             if not full:
-                decision = algorithm._decide_at(times, running, lookahead)
+                decision = schedule.decide_at(times, running)
                 if decision is None or not decision[0] or decision[1] not in members:
                     break
                 rank = decision[1]
@@ -449,7 +446,7 @@ class CompiledLoop:
                     items.append((len(items), tau))
                     continue
                 producer = route.producer.rank
-                slot = windows.get((route.history, tau, size)) if isinstance(route.transition, tr.Average) else None
+                slot = windows.get((route.history, tau, size)) if route.transition.compiled is tr.Compiled.WINDOW_MEAN else None
                 if slot is not None:  # an average over a window the stretch adds to: its mean, made when read
                     if route not in means:
                         means[route] = np.empty(size)
@@ -457,7 +454,7 @@ class CompiledLoop:
                     ops.extend((OP_MEAN, slot, _address(mean), added[slot]))
                     ops.extend((OP_SET, index, _address(mean), NO_KEY))
                     continue
-                if producer in produced and isinstance(route.transition, tr.Hold):
+                if producer in produced and route.transition.compiled is tr.Compiled.LATEST:
                     # a hold of a sample made in this stretch, if there is one by tau
                     sample_ticks, addresses = produced[producer]
                     latest = bisect_right(sample_ticks, tau) - 1
@@ -519,7 +516,7 @@ class CompiledLoop:
         if template is None:
             # the same steps from the same place in the hyperperiod make the same program, whatever
             # the schedule state (near the end of a run, where states are not remembered, most are)
-            key = (t0 % self.algorithm._period, tuple(steps))
+            key = (t0 % self.algorithm.schedule.period, tuple(steps))
             template = self._templates.get(key)
             if template is None:
                 template = self._template(steps, t0)
@@ -707,15 +704,7 @@ class CompiledLoop:
             if member.listeners:
                 columns = {name: rows[:, offset:offset + size] for name, offset, size in member.listener_ports}
                 for listener in member.listeners:
-                    stepped_block = getattr(listener.__self__, "stepped_block", None)
-                    if stepped_block is not None:
-                        stepped_block(comp, ticks, columns, first_step)
-                        continue
-                    steps_after = comp.steps
-                    for i, tick in enumerate(ticks):  # an observer that takes one step at a time
-                        comp.steps = first_step + i + 1
-                        listener(comp, tick, {name: values[i] for name, values in columns.items()})
-                    comp.steps = steps_after
+                    listener.__self__.stepped_block(comp, ticks, columns, first_step)
 
     def _stopped(self, rank: int, tick: int, op, result, mark: int, clock) -> None:
         """The program stopped inside the step of ``rank`` at ``tick``: report or finish it as Python would."""
@@ -735,13 +724,13 @@ class CompiledLoop:
             host.terminate_requested, host.early_return, host.last_successful_time = terminate, early, last
             comp.running = True
             comp.started_at = clock()
-            algorithm._finish(comp, clock)
+            algorithm.finish_step(comp, clock)
             return
         if result.reason == BAD_OP:
             raise RuntimeError(f"the compiled loop met an unknown operation {code} (a bug)")
         if result.reason == NOT_EXACT and code == OP_GET:  # a 64-bit integer beyond 2**53: the binding names it
             instance.time = (tick + comp.step) / algorithm.base
-            instance._refuse_wide(self._port_objects[op[1]])
+            instance.refuse_wide(self._port_objects[op[1]])
         if result.reason == NOT_EXACT:  # the binding's own check says what and raises, as in the Python path
             try:
                 instance.push_port(self._port_objects[op[1]])
@@ -751,18 +740,11 @@ class CompiledLoop:
         if code == OP_GET:
             instance.time = (tick + comp.step) / algorithm.base  # the step itself went through
         if code == OP_STEP:
-            instance._step_problem(t, int(result.status), mark)
-            raise FmuCallError(comp.name, "fmi3DoStep", t, instance._logged_reason(mark), int(result.status))
+            instance.step_problem(t, int(result.status), mark)
+            raise FmuCallError(comp.name, "fmi3DoStep", t, instance.logged_reason(mark), int(result.status))
         call = self._port_objects[op[1]].call
-        instance._check(call, int(result.status), mark)
-        raise FmuCallError(comp.name, call, instance.time, instance._logged_reason(mark), int(result.status))
-
-
-def _is_pacer(observer) -> bool:
-    """Whether ``observer`` paces steps in real time in a way the program can do itself
-    (:class:`.observers.RealtimePacing`: ``paced``, ``origin``, ``pace``, ``sleeps``,
-    ``paced_block``)."""
-    return hasattr(observer, "paced_block")
+        instance.check_status(call, int(result.status), mark)
+        raise FmuCallError(comp.name, call, instance.time, instance.logged_reason(mark), int(result.status))
 
 
 def _sample_between(history, after: int, until: int) -> bool:

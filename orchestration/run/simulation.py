@@ -40,9 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestration.run.algorithm import MultirateAlgorithm, RunInterrupted, RunTerminated, tick_base  # noqa: F401 (re-exported)
+from orchestration.run.algorithm import MultirateAlgorithm, RunInterrupted, RunTerminated
 from orchestration.errors import OrchestrationError
-from orchestration.observers.observers_all import Progress, RealtimePacing, Recording, Statistics
+from orchestration.observers.base import Observer
+from orchestration.observers.progress import Progress
+from orchestration.observers.pacing import RealtimePacing
+from orchestration.observers.recording import Recording
+from orchestration.observers.statistics import Statistics
 from orchestration.app.result_folder import COMPLETE_STATUSES  # the statuses whose results are complete; a loss makes them "failed"
 from orchestration.scene.model import ComponentSpec, Scene
 from orchestration.scene.timing import duration_problem, float_time
@@ -134,8 +138,12 @@ class Simulation:
         _watch_helpers(recording, self.scene.worker_timeout)
         losses_watch = _LossWatch(recording)
         observers = [o for o in (recording, statistics, pacing, progress, losses_watch) if o is not None]
-        algorithm = MultirateAlgorithm(self.scene, self.duration, self._make_host, observers, self.extra_observed,
-                                       compiled_loop=self.compiled_loop)
+        try:
+            algorithm = MultirateAlgorithm(self.scene, self.duration, self._make_host, observers, self.extra_observed,
+                                           compiled_loop=self.compiled_loop)
+        except BaseException:
+            recording.close()  # its writer processes would keep this process from exiting
+            raise
         self.algorithm = algorithm
 
         def on_stop(request):
@@ -166,7 +174,7 @@ class Simulation:
             now = time.perf_counter()
             wall = now - loop_start if loop_start is not None else 0.0
             setup_time = (loop_start if loop_start is not None else now) - t_setup
-            algorithm.notify("finished")  # progress bar closed, CPUs given back
+            algorithm.finished()  # progress bar closed, CPUs given back
             self.final_outputs = algorithm.keep_outputs()
             recording.close()
             messages = algorithm.teardown()
@@ -295,7 +303,7 @@ def _add_loss(summary: dict, problem: str) -> None:
         summary["error"] = f"{summary['error']}; {problem}" if summary["error"] else problem
 
 
-class _LossWatch:
+class _LossWatch(Observer):
     """An observer that ends the run as soon as the recorder finds results lost (a write failed, the
     results folder was deleted): whatever the run computes from then on could not be kept."""
 
