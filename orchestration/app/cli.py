@@ -13,6 +13,8 @@ from pathlib import Path
 
 from fmu_build.paths import DEFAULT_FMU_DIR
 from orchestration.hosts.native_threads import limit_native_threads
+from orchestration.run.status import COMPLETE
+from orchestration.scene.model import HOSTINGS
 
 logger = logging.getLogger("orchestration")
 
@@ -258,7 +260,7 @@ def _simulate(args, stop, scene, folder, Simulation) -> int:
               f"{simulation.hosting} ...", flush=True)
     summary = simulation.run()
     text = simulation.summary_text
-    ok = summary["status"] in ("completed", "terminated")
+    ok = summary["status"] in COMPLETE
     # The exit code tells what the summary says: a signal that came after it was written (while
     # printing) changes nothing that happened.
     stopped = "stop_request" in summary
@@ -325,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
                        help="simulated seconds, e.g. 0.5 or 1/30 (default: the scene's)")
     p_run.add_argument("--out", default=None, help="result folder (default results/<scene>); replaced only by a "
                                                   "run that completes, see below")
-    p_run.add_argument("--hosting", choices=("in-process", "out-of-process"), default=None,
+    p_run.add_argument("--hosting", choices=HOSTINGS, default=None,
                        help="run every FMU in this process or each in a worker process of its own (default: "
                             "the scene's choice per FMU; the shipped tissue scenes put the 30 Hz tissue in a worker)")
     p_run.add_argument("--realtime", action="store_true", help="pace to the wall clock and count missed haptic deadlines")

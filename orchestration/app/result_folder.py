@@ -60,11 +60,10 @@ import shutil
 from pathlib import Path
 
 from fmu_build.paths import REPO_ROOT
+from orchestration.run.status import COMPLETE
 
 logger = logging.getLogger(__name__)
 
-#: statuses whose results replace ``<out>``; the others are kept beside it as ``<out>.<status>``
-COMPLETE_STATUSES = ("completed", "terminated")
 #: the files every run writes under the same name (the others are named by the scene)
 FIXED_RESULT_FILES = ("summary.json", "units.json")
 #: the project's own folder (a run into it, or into a folder holding it, would replace the project)
@@ -297,7 +296,7 @@ class ResultFolder:
 
     def destination(self, status: str) -> Path:
         """Where the results of a run that ended with ``status`` go."""
-        if status in COMPLETE_STATUSES:
+        if status in COMPLETE:  # its results replace <out>; the others are kept beside it as <out>.<status>
             return self.out
         return self.out.with_name(f"{self.out.name}.{status}")
 

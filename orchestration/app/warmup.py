@@ -25,6 +25,8 @@ from fmu_build.portable_runtime import prepare_carried_runtime
 from fmu_build.specs import FMU_SPECS, available_fmus
 
 from orchestration.run.compiled_loop import compiled_loop_library
+from orchestration.run.status import RunStatus
+from orchestration.scene.model import Hosting
 
 logger = logging.getLogger(__name__)
 
@@ -173,8 +175,8 @@ def warm_run(fmu_dir: str | None = None) -> int:
         finally:
             if fmu_dir is not None:
                 scene_file.unlink()
-        summary, _ = run_scene(scene, tmp, hosting="in-process", progress=False, plots=False, vtu=False)
-    if summary["status"] != "completed":
+        summary, _ = run_scene(scene, tmp, hosting=Hosting.IN_PROCESS, progress=False, plots=False, vtu=False)
+    if summary["status"] != RunStatus.COMPLETED:
         print(summary["error"], file=sys.stderr)
         return 1
     return 0

@@ -3,13 +3,6 @@ from __future__ import annotations
 
 from orchestration.errors import short_status_name
 
-#: A run ends "completed", "terminated" (an FMU asked to stop: terminateSimulation), "interrupted"
-#: (Ctrl-C, SIGTERM) or "failed" (a component failed, or results were lost: a write that failed,
-#: frames a writer process could not write, files gone; the summary's ``lost`` lists them); only
-#: "failed" and "interrupted" are errors for the command line.
-STATUSES = ("completed", "terminated", "interrupted", "failed")
-
-
 def fmu_messages(messages: list[tuple[str, int, str]]) -> list[dict]:
     """Log messages at warning level and above, as summary entries."""
     return [{"component": comp, "status": short_status_name(status), "message": text}

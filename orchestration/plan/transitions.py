@@ -317,7 +317,19 @@ class Average(Transition):
         return None
 
 
-#: name -> class; a new transition is one class added here.
-REGISTRY: dict[str, type[Transition]] = {cls.name: cls for cls in (Hold, Interpolate, Extrapolate, Average)}
+#: name -> class, every transition a scene may name (filled by :func:`register`)
+REGISTRY: dict[str, type[Transition]] = {}
+
+
+def register(cls: type[Transition]) -> type[Transition]:
+    """Make a transition class one a scene can name (``transition = cls.name``); a class decorator."""
+    if not cls.name or cls.name in REGISTRY:
+        raise ValueError(f"a transition needs a name of its own, not {cls.name!r} (taken: {', '.join(REGISTRY)})")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+for _builtin in (Hold, Interpolate, Extrapolate, Average):
+    register(_builtin)
 #: what a connection between equal rates uses when the scene names none
 DEFAULT = "hold"

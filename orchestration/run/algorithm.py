@@ -49,7 +49,7 @@ from orchestration.errors import FmuCallError, OrchestrationError
 from orchestration.observers.base import Observer
 from orchestration.plan.schedule import Schedule
 from orchestration.run.compiled_loop import CompiledLoop, load_program_runner
-from orchestration.scene.model import ComponentSpec, ConnectionSpec, Scene
+from orchestration.scene.model import ComponentSpec, ConnectionSpec, ORDERINGS, Ordering, Scene
 
 logger = logging.getLogger(__name__)
 
@@ -234,7 +234,7 @@ class MultirateAlgorithm:
                     producer.histories.setdefault(conn.source_port, []).append(route.history)
                     producer.consumers.append((target, route))
                     _add(producer.observed, conn.source_port)
-            route.need_offset = 0 if conn.ordering == "jacobi" else target.step
+            route.need_offset = 0 if conn.ordering == Ordering.JACOBI else target.step
             target.routes.append(route)
         for observer in self.observers:
             for comp in self.ordered:
@@ -515,9 +515,9 @@ def initialization_order(scene: Scene, names: list[str]) -> list[str]:
     while remaining:
         def blocked(n, kinds):
             return any(t == n and s in remaining and k in kinds for s, t, k in edges)
-        free = [n for n in remaining if not blocked(n, ("gauss-seidel", "jacobi"))]
+        free = [n for n in remaining if not blocked(n, ORDERINGS)]
         if not free:
-            free = [n for n in remaining if not blocked(n, ("gauss-seidel",))] or remaining
+            free = [n for n in remaining if not blocked(n, (Ordering.GAUSS_SEIDEL,))] or remaining
         order.append(free[0])
         remaining.remove(free[0])
     return order

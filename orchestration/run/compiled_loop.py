@@ -36,6 +36,7 @@ from __future__ import annotations
 import array
 import ctypes
 import logging
+import re
 import time
 from bisect import bisect_right
 from ctypes import c_bool, c_double, c_int64, c_void_p
@@ -70,14 +71,8 @@ _GAP = 16
 _TAPE_BYTES = 8 << 20
 _FLOAT64 = np.dtype(np.float64)
 
-OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE, OP_MEAN = range(11)
 #: an OP_SET of a value that is no producer's sample (a source's, an interpolation)
 NO_KEY = -2 ** 63
-DONE, CALL_FAILED, ERROR_LOGGED, STEP_FLAGS, BAD_OP, NOT_EXACT = range(6)
-#: numpy dtype of a port's native buffer -> compiled_loop.c's CAST_*
-_CASTS = {np.dtype(np.float64): 0, np.dtype(np.bool_): 1, np.dtype(np.int8): 2, np.dtype(np.uint8): 3,
-          np.dtype(np.int16): 4, np.dtype(np.uint16): 5, np.dtype(np.int32): 6, np.dtype(np.uint32): 7,
-          np.dtype(np.float32): 8, np.dtype(np.int64): 9, np.dtype(np.uint64): 10}
 
 
 class _Component(ctypes.Structure):
@@ -108,6 +103,37 @@ class _Result(ctypes.Structure):
 
 #: The C half, compiled by the system C compiler once per version of the source.
 SOURCE = Path(__file__).resolve().with_name("compiled_loop.c")
+
+
+def c_constants(source: str) -> dict[str, int]:
+    """The integer constants of C source text: the members of its enums (counted as C counts them)
+    and its ``#define NAME <integer>`` lines, by name."""
+    constants = {}
+    for match in re.finditer(r"^[ \t]*#[ \t]*define[ \t]+(\w+)[ \t]+(-?\d+)[ \t]*$", source, re.MULTILINE):
+        constants[match[1]] = int(match[2])
+    for body in re.findall(r"\benum\s*\w*\s*\{([^}]*)\}", source):
+        value = -1
+        for item in body.split(","):
+            name, _, given = (part.strip() for part in item.partition("="))
+            if name:
+                value = int(given, 0) if given else value + 1
+                constants[name] = value
+    return constants
+
+
+# The program's operations, the reasons a program stops and the casts, as compiled_loop.c numbers
+# them (read from the source that is compiled, so the two cannot drift apart).
+_C = c_constants(SOURCE.read_text())
+OP_NOP, OP_BEGIN, OP_SET, OP_STEP, OP_GET, OP_END, OP_COPY, OP_WINDOW, OP_PACE, OP_LATE, OP_MEAN = (
+    _C[name] for name in ("OP_NOP", "OP_BEGIN", "OP_SET", "OP_STEP", "OP_GET", "OP_END", "OP_COPY", "OP_WINDOW",
+                          "OP_PACE", "OP_LATE", "OP_MEAN"))
+DONE, CALL_FAILED, ERROR_LOGGED, STEP_FLAGS, BAD_OP, NOT_EXACT = (
+    _C[name] for name in ("DONE", "CALL_FAILED", "ERROR_LOGGED", "STEP_FLAGS", "BAD_OP", "NOT_EXACT"))
+#: numpy dtype of a port's native buffer -> compiled_loop.c's CAST_*
+_CASTS = {np.dtype(dtype): _C[name] for dtype, name in (
+    (np.float64, "CAST_NONE"), (np.bool_, "CAST_BOOL"), (np.int8, "CAST_INT8"), (np.uint8, "CAST_UINT8"),
+    (np.int16, "CAST_INT16"), (np.uint16, "CAST_UINT16"), (np.int32, "CAST_INT32"), (np.uint32, "CAST_UINT32"),
+    (np.float32, "CAST_FLOAT32"), (np.int64, "CAST_INT64"), (np.uint64, "CAST_UINT64"))}
 
 
 def compiled_loop_library(build_dir: Path = BUILD_DIR) -> Path:

@@ -22,7 +22,7 @@ final folder.
 
 A run that lost results never ends "completed": results that cannot be kept (a full or read-only
 volume, a file-size limit, the results folder deleted under the run) end the run as soon as the
-recorder finds them, status "failed" (the project's statuses: :data:`.summary.STATUSES`), and
+recorder finds them, status "failed" (the project's statuses: :class:`~orchestration.run.status.RunStatus`), and
 whatever is missing at the end (rows, frames a writer process could not write, files gone, a
 ``summary.json`` that could not be written) is listed in the summary's ``lost`` and named in its
 error, with the path and what was kept; a run stopped by Ctrl-C or SIGTERM stays "interrupted"
@@ -47,11 +47,11 @@ from orchestration.observers.progress import Progress
 from orchestration.observers.pacing import RealtimePacing
 from orchestration.observers.recording import Recording
 from orchestration.observers.statistics import Statistics
-from orchestration.app.result_folder import COMPLETE_STATUSES  # the statuses whose results are complete; a loss makes them "failed"
-from orchestration.scene.model import ComponentSpec, Scene
+from orchestration.scene.model import ComponentSpec, Hosting, Scene
 from orchestration.scene.timing import duration_problem, float_time
 from orchestration.stopping import stop_signals
 from orchestration.observers.summary import fmu_messages, format_summary
+from orchestration.run.status import COMPLETE, RunStatus
 
 logger = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class Simulation:
     # -- hosting -----------------------------------------------------------------------------------
     def hosting_of(self, spec: ComponentSpec) -> str:
         if not spec.is_fmu:
-            return "in-process"
+            return Hosting.IN_PROCESS
         return self.forced_hosting or spec.hosting or self.scene.hosting
 
     @property
@@ -105,14 +105,14 @@ class Simulation:
         fmus = [c for c in self.scene.components.values() if c.is_fmu]
         kinds = {self.hosting_of(c) for c in fmus}
         if len(kinds) <= 1:
-            return kinds.pop() if kinds else "in-process"
-        workers = [c.name for c in fmus if self.hosting_of(c) == "out-of-process"]
+            return kinds.pop() if kinds else Hosting.IN_PROCESS
+        workers = [c.name for c in fmus if self.hosting_of(c) == Hosting.OUT_OF_PROCESS]
         return f"mixed (out-of-process: {', '.join(workers)})"
 
     def _make_host(self, spec: ComponentSpec):
         if not spec.is_fmu:
             return spec.new_block()
-        if self.hosting_of(spec) == "in-process":
+        if self.hosting_of(spec) == Hosting.IN_PROCESS:
             from orchestration.hosts.in_process import InProcessFmu
 
             return InProcessFmu(spec.name, spec.description)
@@ -149,7 +149,7 @@ class Simulation:
         def on_stop(request):
             algorithm.request_stop(request.reason, min(request.count, 2))
 
-        status, error = "completed", None
+        status, error = RunStatus.COMPLETED, None
         t_setup = time.perf_counter()
         loop_start = None
         wall = 0.0
@@ -160,16 +160,16 @@ class Simulation:
             loop_start = time.perf_counter()
             algorithm.run(time.perf_counter, progress.advance)
         except RunTerminated as exc:
-            status, error = "terminated", str(exc)
+            status, error = RunStatus.TERMINATED, str(exc)
         except RunInterrupted as exc:
-            status, error = "interrupted", str(exc)
+            status, error = RunStatus.INTERRUPTED, str(exc)
         except KeyboardInterrupt:  # off the main thread no handler is installed: Python's own
-            status, error = "interrupted", "interrupted by Ctrl-C"
+            status, error = RunStatus.INTERRUPTED, "interrupted by Ctrl-C"
         except OrchestrationError as exc:
             if stop.requested:  # e.g. a worker killed on the second Ctrl-C: the user's stop came first
-                status, error = "interrupted", f"{stop.reason}; then {exc}"
+                status, error = RunStatus.INTERRUPTED, f"{stop.reason}; then {exc}"
             else:
-                status, error = "failed", str(exc)
+                status, error = RunStatus.FAILED, str(exc)
         finally:
             now = time.perf_counter()
             wall = now - loop_start if loop_start is not None else 0.0
@@ -286,18 +286,18 @@ def _account_for_losses(status: str, error: str | None, losses: list[str], stopp
     """The status and error of a run that lost results: never "completed"; "failed" unless the user
     stopped it ("interrupted" stays, and says what was lost too)."""
     text = _loss_text(losses)
-    if status in COMPLETE_STATUSES:
-        return "failed", text if status == "completed" else f"{text}; {error}"
-    if status == "interrupted" and not stopped_by_user:  # the recorder's stop: the run ended over the loss
-        return "failed", text
+    if status in COMPLETE:
+        return RunStatus.FAILED, text if status == RunStatus.COMPLETED else f"{text}; {error}"
+    if status == RunStatus.INTERRUPTED and not stopped_by_user:  # the recorder's stop: the run ended over the loss
+        return RunStatus.FAILED, text
     return status, f"{error}; {text}" if error else text
 
 
 def _add_loss(summary: dict, problem: str) -> None:
     """One more thing the run could not keep (the summary, the folder's move), found at the very end."""
     summary.setdefault("lost", []).append(problem)
-    if summary["status"] in COMPLETE_STATUSES:
-        summary["status"] = "failed"
+    if summary["status"] in COMPLETE:
+        summary["status"] = RunStatus.FAILED
         summary["error"] = _loss_text(summary["lost"])
     else:
         summary["error"] = f"{summary['error']}; {problem}" if summary["error"] else problem

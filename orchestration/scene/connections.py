@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from orchestration.hosts.description import READABLE, WRITABLE, PortInfo, conversion_problem
 from orchestration.plan import transitions as tr
-from orchestration.scene.model import ComponentSpec, ConnectionSpec, ORDERINGS, TRANSITIONS
+from orchestration.scene.model import DEFAULT_ORDERING, ComponentSpec, ConnectionSpec, ORDERINGS, Ordering
 from orchestration.scene.tables import unknown_keys
 from orchestration.scene.values import type_of
 
@@ -60,10 +60,10 @@ def load_connections(items, components: dict[str, ComponentSpec], problems: list
                                 f"{'from an output' if role == 'from' else 'to an input or parameter'}")
                 ok = False
         transition = item.get("transition")
-        if transition is not None and transition not in TRANSITIONS:
-            problems.append(f"{where} transition: {transition!r} is not one of {', '.join(TRANSITIONS)}")
+        if transition is not None and transition not in tr.REGISTRY:
+            problems.append(f"{where} transition: {transition!r} is not one of {', '.join(tr.REGISTRY)}")
             ok = False
-        ordering = item.get("ordering", "gauss-seidel")
+        ordering = item.get("ordering", DEFAULT_ORDERING)
         if ordering not in ORDERINGS:
             problems.append(f"{where} ordering: {ordering!r} is not one of {', '.join(ORDERINGS)}")
             ok = False
@@ -129,7 +129,7 @@ def check_algebraic_loops(connections: list[ConnectionSpec], components: dict, p
     """A cycle of Gauss-Seidel connections has no order to step in: one of them must be Jacobi."""
     graph: dict[str, set[str]] = {}
     for c in connections:
-        if c.ordering == "gauss-seidel" and c.source in components and c.target in components \
+        if c.ordering == Ordering.GAUSS_SEIDEL and c.source in components and c.target in components \
                 and not components[c.source].is_continuous \
                 and components[c.target].ports.get(c.target_port, PortInfo("", "input", "")).causality == "input":
             graph.setdefault(c.source, set()).add(c.target)

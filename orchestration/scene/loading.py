@@ -25,7 +25,7 @@ from fmu_build.paths import SCENE_DIR
 from orchestration.hosts.description import MAX_PORT_VALUES, NUMERIC_TYPES, read_fmu
 from orchestration.hosts.fmi3 import fmu_binary_problem
 from orchestration.scene.connections import check_algebraic_loops, load_connections, parse_endpoint
-from orchestration.scene.model import ComponentSpec, HOSTINGS, MAX_NESTING, Scene, SceneError
+from orchestration.scene.model import DEFAULT_HOSTING, ComponentSpec, HOSTINGS, MAX_NESTING, Scene, SceneError
 from orchestration.scene.record import load_record
 from orchestration.scene.tables import expect_list, expect_table, short_text, unknown_keys
 from orchestration.scene.text import component_name_problem, control_character_problems, nesting_problem, scene_name_problem, too_deep
@@ -131,7 +131,7 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     duration = parse_time(head.get("duration", 1.0), duration_where, problems)
     if head.get("start_time", 0) not in (0, 0.0) or isinstance(head.get("start_time"), bool):
         problems.append("[scene] start_time: only 0 is supported; shift your sources instead")
-    hosting = head.get("hosting", "out-of-process")
+    hosting = head.get("hosting", DEFAULT_HOSTING)
     if hosting not in HOSTINGS:
         problems.append(f"[scene] hosting: {short_text(hosting)} is not one of {', '.join(HOSTINGS)}")
     realtime = head.get("realtime", False)

@@ -2,16 +2,36 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 from fractions import Fraction
 from pathlib import Path
 
 from orchestration.hosts.description import FmuDescription, PortInfo
-from orchestration.plan import transitions as tr
 
 
-TRANSITIONS = tuple(tr.REGISTRY)
-ORDERINGS = ("gauss-seidel", "jacobi")
-HOSTINGS = ("in-process", "out-of-process")
+
+
+class Ordering(StrEnum):
+    """When a connection's consumer reads its producer: the value at the end of its step (the
+    producer steps first) or at its start (both step at once)."""
+
+    GAUSS_SEIDEL = "gauss-seidel"
+    JACOBI = "jacobi"
+
+
+class Hosting(StrEnum):
+    """Where an FMU runs: in the master's process, or in a worker process of its own."""
+
+    IN_PROCESS = "in-process"
+    OUT_OF_PROCESS = "out-of-process"
+
+
+ORDERINGS = tuple(Ordering)
+HOSTINGS = tuple(Hosting)
+#: what a connection uses when the scene names no ordering
+DEFAULT_ORDERING = Ordering.GAUSS_SEIDEL
+#: where a scene's FMUs run when neither the scene nor the command line says
+DEFAULT_HOSTING = Hosting.OUT_OF_PROCESS
 
 # -- plausibility limits: values no scene of this project can mean ---------------------------------
 #: The shortest communication step, s. The fastest loop here is the 1 kHz haptic loop (studies go
@@ -112,7 +132,7 @@ class Scene:
     surfaces: list[SurfaceSpec]
     plots: list[dict]
     summary: dict
-    hosting: str = "out-of-process"
+    hosting: str = DEFAULT_HOSTING
     realtime: bool = False
     #: run-faults (issue 14): seconds a worker process may take to answer during the run;
     #: None: automatic, max(10 s, 100 x its slowest recent reply) (see orchestration.hosts.worker)

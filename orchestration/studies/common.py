@@ -8,12 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
+from orchestration.scene.model import Hosting
+
 logger = logging.getLogger(__name__)
 
 
 def run_point(scene: str, overrides: dict | None = None, *, duration: float | None = None,
               observe: dict[str, list[str]] | None = None, out_dir: Path | str | None = None,
-              hosting: str = "in-process"):
+              hosting: str = Hosting.IN_PROCESS):
     """Run a shipped scene (or a scene file) with parameter overrides; no plots, no VTU, no progress.
 
     Returns ``(summary, simulation)``: ``simulation.final_outputs[component][port]`` holds the

@@ -25,6 +25,7 @@ import numpy as np
 
 from fmu_build.paths import DEFAULT_FMU_DIR
 from orchestration.blocks import PLANT_LIMITS
+from orchestration.run.status import RunStatus
 from orchestration.studies.common import run_point, write_table
 
 logger = logging.getLogger(__name__)
@@ -131,7 +132,7 @@ def classify(summary: dict, finite: bool, within_bound: bool) -> tuple[str, str]
     messages = [f"{m.get('component', '?')} {m.get('status')}: {m.get('message', '')}"
                 for m in summary.get("fmu_messages", [])
                 if m.get("status") in ("warning", "error", "fatal", "discard")]
-    if summary.get("status") != "completed":
+    if summary.get("status") != RunStatus.COMPLETED:
         return "detected" if summary.get("error") else "failing", summary.get("error") or "stopped without a message"
     if messages:
         return "detected", _summarise(messages)

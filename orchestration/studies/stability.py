@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from orchestration.studies.common import run_point, write_table
+from orchestration.run.status import RunStatus
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ def hold_growth(K, B, b_dev, T, mass, n_steps) -> dict:
     overrides = _wall_overrides(K, B, b_dev, T, mass, [0.0, duration], [OPERATOR_FORCE] * 2,
                                 x_eq * (1.0 + PERTURBATION) - first_step)
     summary, sim = run_point("virtual_wall", overrides, duration=duration)
-    if summary.get("status") not in (None, "ok", "completed"):
+    if summary.get("status") not in (None, RunStatus.COMPLETED):
         raise RuntimeError(f"virtual_wall run failed: {summary.get('error')}")
     _, x, v, _ = _device_series(sim)
     e = x - x_eq
@@ -145,7 +146,7 @@ def repeated_contacts(K, B, b_dev, T, mass, press_steps, release_steps, n_presse
     overrides = _wall_overrides(K, B, b_dev, T, mass, times, forces, -0.5 * x_eq)
     overrides["operator.interpolation"] = "hold"
     summary, sim = run_point("virtual_wall", overrides, duration=duration)
-    if summary.get("status") not in (None, "ok", "completed"):
+    if summary.get("status") not in (None, RunStatus.COMPLETED):
         raise RuntimeError(f"virtual_wall run failed: {summary.get('error')}")
     _, x, v, en = _device_series(sim)
     wall = en["wall_energy"]
@@ -233,7 +234,7 @@ def indentation_run(tissue_rate, haptic_rate, local_model, passivity, stiffness=
                       "contact.local_model": str(local_model), "contact.stiffness": float(stiffness),
                       "contact.passivity_controller": bool(passivity)})
     summary, sim = run_point("tissue_indentation", overrides)
-    if summary.get("status") not in (None, "ok", "completed"):
+    if summary.get("status") not in (None, RunStatus.COMPLETED):
         raise RuntimeError(f"tissue_indentation run failed: {summary.get('error')}")
     time, cols = sim.streams["contact"]
     time = np.asarray(time, float)

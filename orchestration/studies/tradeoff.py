@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from orchestration.run.status import RunStatus
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["run", "run_setting", "design_points", "map_displacement", "closest_points_on_triangles", "pareto_front",
@@ -209,7 +211,7 @@ def run_setting(point: dict) -> dict:
         overrides["contact.local_model"] = INDENTATION_LOCAL_MODEL
     summary, simulation = run_point(scene, overrides, duration=duration,
                                     observe={"tissue": ["surface_positions"]})
-    if summary["status"] != "completed" or summary["error"]:
+    if summary["status"] != RunStatus.COMPLETED or summary["error"]:
         raise TradeoffError(f"{scene} {level} {point['law']} {point['integrator']}: {summary['error']}")
     simulated = summary["simulated_time_s"]
     tissue = summary["components"]["tissue"]
