@@ -134,3 +134,26 @@ def test_no_module_imports_another_modules_privates():
 def test_every_module_imports(name):
     """(A ``__main__`` module runs its program when imported: it is left out.)"""
     importlib.import_module(name)
+
+
+#: The orchestrator's packages along its pipeline (docs/orchestrator.md): each imports only the
+#: packages before it (and the FMU build, which imports nothing of the orchestrator).
+LAYERS = ("fmu_build", "orchestration.errors", "orchestration.stopping", "orchestration.hosts", "orchestration.plan",
+          "orchestration.scene", "orchestration.blocks", "orchestration.observers", "orchestration.run",
+          "orchestration.app", "orchestration.studies", "orchestration.__main__")
+
+
+def _layer(name: str) -> int | None:
+    for index, layer in enumerate(LAYERS):
+        if name == layer or name.startswith(layer + "."):
+            return index
+    return None
+
+
+def test_the_orchestrators_packages_import_only_those_before_them():
+    graph = import_graph()
+    upward = [f"{source} -> {target}" for source, targets in graph.items() for target in targets
+              if _layer(source) is not None and _layer(target) is not None and _layer(target) > _layer(source)]
+    assert not upward, f"imports against the pipeline's order {LAYERS}: {upward}"
+    assert all(_layer(name) is not None for name in MODULES if name.startswith(("orchestration.", "fmu_build."))), \
+        [name for name in MODULES if name.startswith(("orchestration.", "fmu_build.")) and _layer(name) is None]
