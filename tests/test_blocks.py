@@ -6,7 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from orchestration.blocks import BLOCK_KINDS, REQUIRED, BlockConfigError, CsvSource, DevicePlant, FmuCallError, PiecewiseLinearSource, RigidSurfaceSource, block_options, exact_step_factors, make_block
+from orchestration.blocks import (
+    BLOCK_KINDS, REQUIRED, BlockConfigError, CsvSource, DevicePlant, FmuCallError, PiecewiseLinearSource,
+    RigidSurfaceSource, block_options, exact_step_factors, make_block)
 
 TIMES = [0.0, 0.5, 2.0, 3.0]
 INSERTION = [0.0, 0.01, 0.05, 0.05]

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from orchestration.studies import tradeoff
-from orchestration.studies.tradeoff import closest_points_on_triangles, displacement_on_reference, pareto_front, surface_of_level
+from orchestration.studies.tradeoff import (
+    closest_points_on_triangles, displacement_on_reference, pareto_front, surface_of_level)
 
 
 # --- helpers against slow references -----------------------------------------------------------

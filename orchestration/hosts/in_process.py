@@ -27,7 +27,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from orchestration.errors import LOG_LEVELS, FmuBinaryError, FmuCallError
-from orchestration.hosts.fmi3 import NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, required_functions, resource_path, slot_layout
+from orchestration.hosts.fmi3 import (
+    NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, required_functions, resource_path,
+    slot_layout)
 from orchestration.hosts.description import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 
 logger = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
 The 1 kHz haptic loop needs a CPU of its own, and on a 2-core machine the tissue's worker has the
 other one. The tissue's CHOLMOD (the ``cholmod`` extra) runs parts of a factorisation on 4 OpenMP
-threads whatever ``OMP_NUM_THREADS`` says: one thread factorises 1.4-1.8x faster on this machine,
+threads whatever ``OMP_NUM_THREADS`` says: one thread factorises faster (docs/performance.md),
 and the others would take the loop's CPU. (Its BLAS calls run on one thread anyway, set by the
 tissue for the same bits in every process; the system's OpenBLAS would still start a pool of
 threads that nothing uses.) libgomp and OpenBLAS read their limits from the environment once,

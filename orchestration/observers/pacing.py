@@ -1,4 +1,5 @@
-"""Real-time pacing: each paced step waits for its time on the wall clock, and how late it ends is measured."""
+"""Real-time pacing: each paced step waits for its time on the wall clock, and how late it ends is
+measured."""
 from __future__ import annotations
 
 import logging
@@ -28,15 +29,9 @@ class RealtimePacing(Observer):
     process keeps the first one while the worker processes and helper processes (the surface
     writer) share the others (``cpus`` in the report) until the run ends, and it spins between
     steps instead of sleeping; otherwise it sleeps until ``SPIN_S`` before a step and spins the
-    rest. A worker woken for its step was often placed on this process's CPU and took it for
-    milliseconds; a sleeping CPU wakes late and with cold caches. Measured on this 2-core VM
-    (default scene without surfaces, 4 s, 8000 paced steps): sleeping to the deadline missed
-    950-1470 deadlines, spinning its last 0.3 ms 670-690 (two or three runs each); with CPUs
-    apart, spinning throughout against sleeping to 0.3 ms before, five runs each alternating,
-    medians 536 against 904 (p99 lateness 1.7 against 2.7 ms), in another five 416 against 635.
-    What remains is mostly the contact's step that takes in each new tissue frame (1.5-2.5 ms
-    then; 0.4-0.8 ms for the intake since it runs in numba kernels, 0.35-0.45 ms since the tool's
-    query is one too): it now ends about on time (at the median, 0.12 ms early to 0.04 ms late).
+    rest. A worker woken for its step is otherwise often placed on this process's CPU and takes it
+    for milliseconds; a sleeping CPU wakes late and with cold caches. Each of these choices missed
+    fewer deadlines than the alternative in runs side by side (docs/performance.md).
 
     Inside a compiled stretch (``compiled_loop.c``) the program paces and measures the steps the
     same way (``paced``, ``origin``, ``sleeps``; it sets ``origin`` at the run's first paced step

@@ -1,4 +1,5 @@
-"""Plausible ranges of outputs: the declared range of a port, or a magnitude no run of this project can mean."""
+"""Plausible ranges of outputs: the declared range of a port, or a magnitude no run of this project can
+mean."""
 from __future__ import annotations
 
 import math

@@ -11,7 +11,7 @@ killed keeps everything up to that point:
   elsewhere; without a row writer by the writing call too), always as whole lines, and at
   :meth:`Recorder.close`, which is also registered with :mod:`atexit`. With a ``row_writer``
   (:mod:`.row_writer`) a process of its own makes the text and writes it, so the 1 kHz loop only
-  copies a row's floats (3-5 us instead of 8-12); without one, the flush writes the text itself;
+  copies a row's floats (less than half the cost of making the text); without one, the flush writes the text itself;
 * units are kept apart in ``units.json`` so the CSV header stays plain;
 * a tissue surface is a series of ``.vtu`` files plus a ParaView collection ``<name>.pvd`` that is
   rewritten atomically after every frame, so a killed run still opens in ParaView; during a run a

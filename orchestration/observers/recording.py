@@ -1,4 +1,5 @@
-"""The recording observer: the observed ports of each component into its stream (CSV), surfaces into VTU series."""
+"""The recording observer: the observed ports of each component into its stream (CSV), surfaces into
+VTU series."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
-"""The statistics observer: peaks, energies, warnings, deadlines and implausible outputs for the summary."""
+"""The statistics observer: peaks, energies, warnings, deadlines and implausible outputs for the
+summary."""
 from __future__ import annotations
 
 import logging

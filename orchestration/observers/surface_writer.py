@@ -102,9 +102,9 @@ class SurfaceWriter:
         self.out_dir = Path(out_dir)
         self._helper = HelperProcess(LABEL, _serve, str(out_dir))
         # A frame (64 KB for the default wall) fills the pipe: sending it blocks until the writer
-        # reads, and the writer runs only on an idle CPU. Sent from the run's thread, the default
-        # scene's 1 kHz loop spent 0.3-0.4 s of its 1.5 s waiting in these sends (measured); this
-        # thread waits instead (the write releases the GIL).
+        # reads, and the writer runs only on an idle CPU. Sent from the run's thread, the 1 kHz loop
+        # would wait in these sends for a fifth of its time; this thread waits instead (the write
+        # releases the GIL).
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._series: dict[str, tuple[np.ndarray, Path]] = {}
         #: frames handed to the writer process, per surface: (time, path)

@@ -13,7 +13,7 @@ depends on the connection's ordering; see ``master``) through one of
   step), e.g. the 1 kHz contact forces over one 30 Hz tissue step. With 1 ms and 1/30 s the
   windows hold 33 or 34 samples, counted exactly. The sums are kept as the samples arrive
   (:class:`WindowSums`): the consumer's step finds its mean ready instead of summing 33 cold
-  64 KB samples at a 30 Hz frame (185 us for the contact forces, each frame, in the 1 kHz loop).
+  64 KB samples at a 30 Hz frame, inside the 1 kHz loop.
 
 Each transition keeps the samples it needs in a history of its own kind (``history``): the
 master hands each sample to it, copied first if the history ``keeps_values``.

@@ -26,13 +26,13 @@ Initialization propagates outputs to inputs before the first step: components le
 initialization mode in the order of their connections (producers first), each receiving the
 initial outputs of those already initialized, including parameters such as the surface triangles.
 
-Observers (:class:`~orchestration.observers.base.Observer`) see every step's outputs; the algorithm knows nothing of files,
-statistics or wall-clock pacing.
+Observers (:class:`~orchestration.observers.base.Observer`) see every step's outputs; the
+algorithm knows nothing of files, statistics or wall-clock pacing.
 
 The compiled loop (:mod:`.compiled_loop`) makes the stretches of in-process steps between two
 events that need this module (a worker's step starting or collected) in C: planned with
-:meth:`~orchestration.plan.schedule.Schedule.decide_at` and these routing rules, replayed into the histories and
-observers afterwards; the same calls with the same values as stepping here (tested bitwise).
+:meth:`~orchestration.plan.schedule.Schedule.decide_at` and these routing rules, replayed into the
+histories and observers afterwards; the same calls with the same values as stepping here (tested bitwise).
 """
 from __future__ import annotations
 

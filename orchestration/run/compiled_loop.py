@@ -55,9 +55,9 @@ from orchestration.observers.pacing import SPIN_S
 logger = logging.getLogger(__name__)
 
 #: Most steps in one stretch (the program's size; a stretch ends earlier at any event of its own).
-#: Longer stretches replay less often but take longer to plan and to make a program of; with every
-#: FMU of the default scene in process, 4 s runs took 29 ms of the master's Python at 512 steps,
-#: 31 ms at 256 and 38 ms at 1024 (plan, program, fill and replay; three runs each)
+#: Longer stretches replay less often but take longer to plan and to make a program of; 512 is
+#: where the master's own Python per run is least for the default scene with every FMU in process
+#: (docs/performance.md)
 MAX_STEPS = 512
 #: Stretches planned from the same schedule state are remembered (up to this many states) ...
 PLAN_CACHE_LIMIT = 10_000
@@ -472,7 +472,8 @@ class CompiledLoop:
                     items.append((len(items), tau))
                     continue
                 producer = route.producer.rank
-                slot = windows.get((route.history, tau, size)) if route.transition.compiled is tr.Compiled.WINDOW_MEAN else None
+                averaged = route.transition.compiled is tr.Compiled.WINDOW_MEAN
+                slot = windows.get((route.history, tau, size)) if averaged else None
                 if slot is not None:  # an average over a window the stretch adds to: its mean, made when read
                     if route not in means:
                         means[route] = np.empty(size)

@@ -1,4 +1,5 @@
-"""Connections between components: endpoints, causality, types, sizes, units, rates and transitions, and algebraic loops."""
+"""Connections between components: endpoints, causality, types, sizes, units, rates and transitions,
+and algebraic loops."""
 from __future__ import annotations
 
 from orchestration.hosts.description import READABLE, WRITABLE, PortInfo, conversion_problem

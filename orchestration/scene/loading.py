@@ -28,7 +28,8 @@ from orchestration.scene.connections import check_algebraic_loops, load_connecti
 from orchestration.scene.model import DEFAULT_HOSTING, ComponentSpec, HOSTINGS, MAX_NESTING, Scene, SceneError
 from orchestration.scene.record import load_record
 from orchestration.scene.tables import expect_list, expect_table, short_text, unknown_keys
-from orchestration.scene.text import component_name_problem, control_character_problems, nesting_problem, scene_name_problem, too_deep
+from orchestration.scene.text import (
+    component_name_problem, control_character_problems, nesting_problem, scene_name_problem, too_deep)
 from orchestration.scene.timing import duration_problem, format_time, parse_time, run_size_problem, step_problem
 from orchestration.scene.values import all_finite, check_parameters
 

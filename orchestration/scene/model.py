@@ -1,4 +1,5 @@
-"""What a scene is once loaded: its components, connections, recording; the plausibility limits of its times."""
+"""What a scene is once loaded: its components, connections, recording; the plausibility limits of its
+times."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -1,4 +1,5 @@
-"""What a run records: the streams, surfaces and plots of ``[record]``, their file names inside the result folder."""
+"""What a run records: the streams, surfaces and plots of ``[record]``, their file names inside the
+result folder."""
 from __future__ import annotations
 
 import re

@@ -1,4 +1,5 @@
-"""Reading the parsed TOML: tables, lists and strings where they are expected, unknown keys, each problem named with where it is."""
+"""Reading the parsed TOML: tables, lists and strings where they are expected, unknown keys, each
+problem named with where it is."""
 from __future__ import annotations
 
 

@@ -1,4 +1,5 @@
-"""A scene's text and names, checked before and beside parsing: nesting depth, control characters, names that become file names."""
+"""A scene's text and names, checked before and beside parsing: nesting depth, control characters,
+names that become file names."""
 from __future__ import annotations
 
 import re

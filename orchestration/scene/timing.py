@@ -1,4 +1,5 @@
-"""Times in scenes: exact rationals (``fractions.Fraction``) from numbers and "1/30" strings, and the checks of steps and durations."""
+"""Times in scenes: exact rationals (``fractions.Fraction``) from numbers and "1/30" strings, and the
+checks of steps and durations."""
 from __future__ import annotations
 
 import math
