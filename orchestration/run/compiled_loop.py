@@ -223,6 +223,24 @@ class _Template:
         self.lateness = np.empty(0)        # how late each paced step ended (slots in step order)
 
 
+class _Building:
+    """What the making of one template keeps track of, step by step."""
+
+    def __init__(self, steps: list[tuple[int, int]]):
+        self.rows: dict[int, int] = {}
+        #: each member's samples in this stretch so far: their ticks (increasing) and tape row addresses
+        self.produced: dict[int, tuple[list[int], list[int]]] = {rank: ([], []) for rank, _ in steps}
+        self.counts: dict[int, int] = {}
+        for rank, _ in steps:
+            self.counts[rank] = self.counts.get(rank, 0) + 1
+        self.staging: dict = {}   # route -> (its staging rows, [(row, tau)])
+        self.patches: dict = {}   # route -> ([op index], [tau], size) of the values read from histories that stay
+        self.windows: dict = {}   # (WindowSums, end tick, size) -> slot
+        self.added: dict[int, int] = {}  # window slot -> the samples added to it so far in the program
+        self.means: dict = {}     # route -> the array its window's mean is made in
+        self.late_slots = 0
+
+
 class CompiledLoop:
     """Runs the stretches of in-process steps of one :class:`MultirateAlgorithm` run in C."""
 
@@ -433,20 +451,8 @@ class CompiledLoop:
         members = self.members
         template = _Template()
         ops = template.ops
-        rows: dict[int, int] = {}
-        # each member's samples in this stretch so far: their ticks (increasing) and tape row addresses
-        produced: dict[int, tuple[list[int], list[int]]] = {rank: ([], []) for rank, _ in steps}
-        counts: dict[int, int] = {}
-        for rank, _ in steps:
-            counts[rank] = counts.get(rank, 0) + 1
-        staging: dict = {}   # route -> (its staging rows, [(row, tau)])
-        patches: dict = {}   # route -> ([op index], [tau], size) of the values read from histories that stay
-        windows: dict = {}   # (WindowSums, end tick, size) -> slot
-        added: dict[int, int] = {}  # window slot -> the samples added to it so far in the program
-        means: dict = {}     # route -> the array its window's mean is made in
-        late_slots = 0
+        building = _Building(steps)
         for rank, tick in steps:
-            comp = comps[rank]
             member = members[rank]
             if member.paced:
                 ops.extend((OP_PACE, tick, 0, 0))
@@ -454,82 +460,100 @@ class CompiledLoop:
                     template.first_paced = tick
             ops.extend((OP_BEGIN, rank, 0, 0))
             for route in member.routes:
-                tau = tick + route.need_offset
-                index = member.port_index[route]
-                size = member.last_values[route].size
-                if route.source is not None and route.source.constant:
-                    # the Python path sets a constant source's value once in a run: here its first time
-                    if route not in staging:
-                        staging[route] = (np.empty((1, size)), [(0, tau)])
-                        template.constants.append((len(ops) // 4, route))
-                        ops.extend((OP_SET, index, _address(staging[route][0]), NO_KEY))
-                    continue
-                if route.source is not None:  # its value at tau, written into a row of its staging array
-                    if route not in staging:
-                        staging[route] = (np.empty((counts[rank], size)), [])
-                    values, items = staging[route]
-                    ops.extend((OP_SET, index, _address(values) + 8 * size * len(items), NO_KEY))
-                    items.append((len(items), tau))
-                    continue
-                producer = route.producer.rank
-                averaged = route.transition.compiled is tr.Compiled.WINDOW_MEAN
-                slot = windows.get((route.history, tau, size)) if averaged else None
-                if slot is not None:  # an average over a window the stretch adds to: its mean, made when read
-                    if route not in means:
-                        means[route] = np.empty(size)
-                    mean = means[route]
-                    ops.extend((OP_MEAN, slot, _address(mean), added[slot]))
-                    ops.extend((OP_SET, index, _address(mean), NO_KEY))
-                    continue
-                if producer in produced and route.transition.compiled is tr.Compiled.LATEST:
-                    # a hold of a sample made in this stretch, if there is one by tau
-                    sample_ticks, addresses = produced[producer]
-                    latest = bisect_right(sample_ticks, tau) - 1
-                    if latest >= 0:
-                        offset = members[producer].tape_offsets[route.spec.source_port]
-                        ops.extend((OP_SET, index, addresses[latest] + 8 * offset, sample_ticks[latest]))
-                        continue
-                # a sample from before the stretch (its producer's history does not change in it)
-                patch = patches.setdefault(route, ([], [], size))
-                patch[0].append(len(ops) // 4)
-                patch[1].append(tau)
-                ops.extend((OP_NOP, index, 0, 0))
+                self._input_ops(template, building, member, route, rank, tick + route.need_offset)
             ops.extend((OP_STEP, rank, tick, 0))
             ops.extend(member.step_ops)
-            sample_tick = tick + comp.step
-            row = rows.get(rank, 0)
-            rows[rank] = row + 1
-            row_address = member.tape_address + 8 * member.tape.shape[1] * row
-            for offset, address, size in member.copies:
-                ops.extend((OP_COPY, row_address + 8 * offset, address, size))
-            produced[rank][0].append(sample_tick)
-            produced[rank][1].append(row_address)
-            slots = []
-            for address, size, history in member.windows:
-                end = -(-(t0 + sample_tick) // history.window) * history.window - t0  # from the stretch's start
-                slot = windows.setdefault((history, end, size), len(windows))
-                added[slot] = added.get(slot, 0) + 1
-                ops.extend((OP_WINDOW, slot, address, size))
-                slots.append(slot)
-            late = -1
-            if member.paced:
-                late, late_slots = late_slots, late_slots + 1
-                ops.extend((OP_LATE, late, sample_tick, 0))
-            template.steps.append((rank, tick, row, len(ops) // 4, slots, late))
-        template.lateness = np.empty(late_slots)
+            self._output_ops(template, building, member, rank, tick, tick + comps[rank].step, t0)
+        self._finish_template(template, building)
+        return template
+
+    def _input_ops(self, template: _Template, building: _Building, member: _Member, route, rank: int,
+                   tau: int) -> None:
+        """The operations that set one input of a member's step that reads at ``tau``."""
+        ops = template.ops
+        staging = building.staging
+        index = member.port_index[route]
+        size = member.last_values[route].size
+        if route.source is not None and route.source.constant:
+            # the Python path sets a constant source's value once in a run: here its first time
+            if route not in staging:
+                staging[route] = (np.empty((1, size)), [(0, tau)])
+                template.constants.append((len(ops) // 4, route))
+                ops.extend((OP_SET, index, _address(staging[route][0]), NO_KEY))
+            return
+        if route.source is not None:  # its value at tau, written into a row of its staging array
+            if route not in staging:
+                staging[route] = (np.empty((building.counts[rank], size)), [])
+            values, items = staging[route]
+            ops.extend((OP_SET, index, _address(values) + 8 * size * len(items), NO_KEY))
+            items.append((len(items), tau))
+            return
+        producer = route.producer.rank
+        averaged = route.transition.compiled is tr.Compiled.WINDOW_MEAN
+        slot = building.windows.get((route.history, tau, size)) if averaged else None
+        if slot is not None:  # an average over a window the stretch adds to: its mean, made when read
+            if route not in building.means:
+                building.means[route] = np.empty(size)
+            mean = building.means[route]
+            ops.extend((OP_MEAN, slot, _address(mean), building.added[slot]))
+            ops.extend((OP_SET, index, _address(mean), NO_KEY))
+            return
+        if producer in building.produced and route.transition.compiled is tr.Compiled.LATEST:
+            # a hold of a sample made in this stretch, if there is one by tau
+            sample_ticks, addresses = building.produced[producer]
+            latest = bisect_right(sample_ticks, tau) - 1
+            if latest >= 0:
+                offset = self.members[producer].tape_offsets[route.spec.source_port]
+                ops.extend((OP_SET, index, addresses[latest] + 8 * offset, sample_ticks[latest]))
+                return
+        # a sample from before the stretch (its producer's history does not change in it)
+        patch = building.patches.setdefault(route, ([], [], size))
+        patch[0].append(len(ops) // 4)
+        patch[1].append(tau)
+        ops.extend((OP_NOP, index, 0, 0))
+
+    @staticmethod
+    def _output_ops(template: _Template, building: _Building, member: _Member, rank: int, tick: int,
+                    sample_tick: int, t0: int) -> None:
+        """The operations after a member's step from ``tick``: its outputs to the tape, its samples
+        added to the windows they fall in, its lateness when paced."""
+        ops = template.ops
+        row = building.rows.get(rank, 0)
+        building.rows[rank] = row + 1
+        row_address = member.tape_address + 8 * member.tape.shape[1] * row
+        for offset, address, size in member.copies:
+            ops.extend((OP_COPY, row_address + 8 * offset, address, size))
+        building.produced[rank][0].append(sample_tick)
+        building.produced[rank][1].append(row_address)
+        slots = []
+        windows = building.windows
+        for address, size, history in member.windows:
+            end = -(-(t0 + sample_tick) // history.window) * history.window - t0  # from the stretch's start
+            slot = windows.setdefault((history, end, size), len(windows))
+            building.added[slot] = building.added.get(slot, 0) + 1
+            ops.extend((OP_WINDOW, slot, address, size))
+            slots.append(slot)
+        late = -1
+        if member.paced:
+            late, building.late_slots = building.late_slots, building.late_slots + 1
+            ops.extend((OP_LATE, late, sample_tick, 0))
+        template.steps.append((rank, tick, row, len(ops) // 4, slots, late))
+
+    def _finish_template(self, template: _Template, building: _Building) -> None:
+        """What the fill and the replay of a template's stretches need, once its operations are known."""
+        template.lateness = np.empty(building.late_slots)
         template.patches = [(route, np.array(indices, dtype=np.int64), indices, taus, size)
-                            for route, (indices, taus, size) in patches.items()]
-        template.codes = np.frombuffer(ops, dtype=np.int64)[::4]  # (ops keeps its size from here on)
+                            for route, (indices, taus, size) in building.patches.items()]
+        template.codes = np.frombuffer(template.ops, dtype=np.int64)[::4]  # (ops keeps its size from here on)
         template.replay = self._replay_data(template.steps)
         groups: dict = {}  # the routes of one source read at the same ticks: evaluated once
-        for route, (values, items) in staging.items():
+        for route, (values, items) in building.staging.items():
             ticks = tuple(tau for _, tau in items)
             group = groups.setdefault((id(route.source), ticks), (route.source, np.array(ticks, dtype=np.int64), []))
             group[2].append((route.spec.source_port, values))
         template.sources = list(groups.values())
-        template.windows = list(windows)
-        template.means = list(means.values())
-        return template
+        template.windows = list(building.windows)
+        template.means = list(building.means.values())
 
     # -- one stretch ---------------------------------------------------------------------------------
     def run_stretch(self, clock) -> int:

@@ -97,16 +97,46 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
     deep = too_deep(data)
     if deep is not None:
         raise SceneError(path, [f"{deep}: tables or lists nested more than {MAX_NESTING} levels deep; a scene "
-                                "nests at most 5 (see scenes/README.md)"])
+                                "nests at most 5 (see docs/scenes.md)"])
     problems += control_character_problems(data, overrides)
     allowed_top = {"scene", "fmu", "source", "block", "connection", "record", "summary"}
     unknown_keys(data, allowed_top, "top level", problems)
+    overrides = _component_overrides(overrides, problems)
+    head = _load_head(data, path, overrides, problems)
+    components, declared = _load_components(data, base_dir, overrides, problems)
+    duration, duration_where = head["duration"], head["duration_where"]
+    if duration is not None:
+        problem = duration_problem(components.values(), duration) or run_size_problem(components.values(), duration)
+        if problem:
+            problems.append(f"{duration_where}: {problem}")
+    connections = load_connections(data.get("connection", []), components, problems, declared)
+    check_algebraic_loops(connections, components, problems)
+    record, surfaces, plots = load_record(expect_table(data.get("record", {}), "[record]", problems,
+                                                  "<component> = [ports], surfaces, plots"), components, problems,
+                                           declared)
+    summary = _load_summary(data, components, declared, problems)
+    if problems:
+        raise SceneError(path, problems)
+    worker_timeout = head["worker_timeout"]
+    return Scene(path=path, name=head["name"], description=head["description"], duration=duration,
+                 components=components, connections=connections, record=record, surfaces=surfaces, plots=plots,
+                 summary=summary, hosting=head["hosting"], realtime=head["realtime"],
+                 worker_timeout=None if worker_timeout is None else float(worker_timeout))
+
+
+def _component_overrides(overrides: dict | None, problems: list[str]) -> dict:
+    """The overrides (``--set``, studies) with the malformed keys reported and left out."""
     overrides = dict(overrides or {})
     for key in list(overrides):
         if not isinstance(key, str) or (key != "duration" and (key.count(".") != 1 or not all(key.split(".")))):
             problems.append(f"override {key!r}: write component.parameter (e.g. contact.stiffness) or scene.duration")
             overrides.pop(key)
+    return overrides
 
+
+def _load_head(data: dict, path: Path | None, overrides: dict, problems: list[str]) -> dict:
+    """``[scene]`` with its overrides (taken out of ``overrides``): name, description, duration and
+    where it was given, hosting, realtime, worker_timeout."""
     head = expect_table(data.get("scene", {}), "[scene]", problems, "name, description, duration, ...")
     unknown_keys(head, _SCENE_KEYS, "[scene]", problems)
     duration_where = "[scene] duration"
@@ -146,7 +176,13 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
         problems.append(f"[scene] worker_timeout: seconds a worker may take to answer, a number in (0, 86400] "
                         f"(got {short_text(worker_timeout)}); leave it out for the automatic max(10 s, 100 x slowest reply)")
         worker_timeout = None
+    return {"name": name, "description": description, "duration": duration, "duration_where": duration_where,
+            "hosting": hosting, "realtime": realtime, "worker_timeout": worker_timeout}
 
+
+def _load_components(data: dict, base_dir: Path, overrides: dict, problems: list[str]) -> tuple[dict, set]:
+    """The FMUs, sources and blocks (their overrides taken out of ``overrides``; any left is a
+    problem), and the names declared, loaded or not."""
     components: dict[str, ComponentSpec] = {}
     sections = {section: expect_table(data.get(section, {}), section, problems, f"one [{section}.<name>] table each")
                 for section in ("fmu", "source", "block")}
@@ -163,16 +199,11 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
         problems.append(f"override {key!r}: no such component parameter in the scene")
     if not components and not declared:
         problems.append("the scene has no [fmu.<name>] or [block.<name>]: nothing to simulate")
+    return components, declared
 
-    if duration is not None:
-        problem = duration_problem(components.values(), duration) or run_size_problem(components.values(), duration)
-        if problem:
-            problems.append(f"{duration_where}: {problem}")
-    connections = load_connections(data.get("connection", []), components, problems, declared)
-    check_algebraic_loops(connections, components, problems)
-    record, surfaces, plots = load_record(expect_table(data.get("record", {}), "[record]", problems,
-                                                  "<component> = [ports], surfaces, plots"), components, problems,
-                                           declared)
+
+def _load_summary(data: dict, components: dict, declared: set, problems: list[str]) -> dict:
+    """``[summary]``: the ports whose peaks, energies and warnings a run's summary reports."""
     summary = expect_table(data.get("summary", {}), "[summary]", problems, "peaks, energy, warnings")
     unknown_keys(summary, _SUMMARY_KEYS, "[summary]", problems)
     for key in ("peaks", "energy", "warnings"):
@@ -185,12 +216,7 @@ def scene_from_dict(data: dict, base_dir: Path, path: Path | None = None, overri
             elif ref and components[ref[0]].ports[ref[1]].type not in NUMERIC_TYPES:
                 problems.append(f"[summary] {key}[{i}]: {item!r} is a {components[ref[0]].ports[ref[1]].type} variable; "
                                 "the summary takes numbers, Booleans and enumerations")
-    if problems:
-        raise SceneError(path, problems)
-    return Scene(path=path, name=name, description=description, duration=duration,
-                 components=components, connections=connections, record=record, surfaces=surfaces, plots=plots,
-                 summary=summary, hosting=hosting, realtime=realtime,
-                 worker_timeout=None if worker_timeout is None else float(worker_timeout))
+    return summary
 
 
 def _apply_overrides(name: str, parameters: dict, overrides: dict) -> dict:

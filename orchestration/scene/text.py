@@ -139,7 +139,7 @@ def nesting_problem(text: str) -> str | None:
         return None
     line = text.count("\n", 0, offset) + 1
     return (f"top level: TOML nested too deeply: line {line} nests tables, lists or dotted keys (a.b.c = ...) more than "
-            f"{MAX_NESTING} levels deep; a scene nests at most 5 levels (see scenes/README.md): check the "
+            f"{MAX_NESTING} levels deep; a scene nests at most 5 levels (see docs/scenes.md): check the "
             "brackets and the dots of the keys on that line")
 
 
