@@ -8,7 +8,7 @@ Two classes:
   initialization modes, ``terminate``, ``free``), typed ``get``/``set`` for every FMI 3.0 variable
   type (numeric, Boolean, Enumeration, String, Binary), and ``do_step`` returning its out-flags.
   The hot path works over float64 buffers: ``bind(ports, inputs, observed)`` lays the ports out
-  in two buffers (:func:`slot_layout`; they may be shared memory), ``push`` writes input slots to
+  in two buffers (:mod:`~orchestration.hosts.buffers`; they may be shared memory), ``push`` writes input slots to
   the FMU, ``do_step`` steps, ``pull`` reads every observed port into the output buffer. Value
   reference arrays, native buffers and pointers are built once by ``bind``; a step makes no
   Python list.
@@ -18,8 +18,8 @@ error, raises :class:`~orchestration.errors.FmuCallError` carrying the function 
 variables it was about), the simulated time, the status and the reason the FMU logged. The log
 messages themselves are collected in ``messages`` as ``(status, text)``.
 
-fmi3DoStep's out-flags: ``do_step`` returns them as a tuple (field names: :class:`StepResult`). An fmi3Discard together with
-``terminateSimulation`` is the FMU ending the simulation, not an error: it is returned like any
+fmi3DoStep's out-flags: ``do_step`` returns them as a tuple (field names: :class:`StepResult`). An
+fmi3Discard together with ``terminateSimulation`` is the FMU ending the simulation, not an error: it is returned like any
 other step (``terminate_requested`` set), and ``fmi3Terminate`` stays allowed. An fmi3Discard
 without it raises (the orchestrator does not retry a step with a smaller size).
 
@@ -33,13 +33,14 @@ import os
 import platform
 import struct
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from orchestration.errors import FMI_DISCARD, FMI_ERROR, FMI_FATAL, FMI_OK, FMI_WARNING, FmuBinaryError, FmuCallError
+from orchestration.hosts.buffers import (EXACT_INTEGER, InputPort, OutputGroup, PortLike, exact_in_float64,
+                                         slot_layout)
 
 # -- C types ---------------------------------------------------------------------------------------
 c_instance = ctypes.c_void_p
@@ -74,7 +75,6 @@ _NUMERIC: dict[str, tuple[str, type, type]] = {
 NATIVE_DTYPES = {name: dtype for name, (_, _, dtype) in _NUMERIC.items()}
 #: Types whose values float64 holds exactly only up to 2**53 in magnitude.
 _WIDE_TYPES = ("Int64", "UInt64", "Enumeration")
-_EXACT_INTEGER = 2 ** 53
 #: Every FMI 3.0 variable type the binding can get and set.
 VALUE_TYPES = tuple(_NUMERIC) + ("String", "Binary")
 
@@ -349,74 +349,12 @@ class StepResult(NamedTuple):
     last_successful_time: float
 
 
-class PortLike:  # documentation only: what bind() reads of a port
-    type: str
-    value_reference: int
-    size: int
-
-
-def slot_layout(ports: Mapping[str, PortLike], names: Sequence[str]) -> tuple[dict[str, tuple[int, int]], int]:
-    """Offsets ``name -> (start, stop)`` in one float64 buffer, grouped by type (Float64 first), and its size.
-
-    A pure function of the port lists, so that two processes lay out the same shared buffer alike.
-    """
-    order = sorted(range(len(names)), key=lambda i: (ports[names[i]].type != "Float64", ports[names[i]].type, i))
-    layout, offset = {}, 0
-    for i in order:
-        size = ports[names[i]].size
-        layout[names[i]] = (offset, offset + size)
-        offset += size
-    return layout, offset
-
-
-def _exact_in_float64(values: np.ndarray) -> bool:
-    """Whether every integer in ``values`` is one float64 holds exactly (|v| <= 2**53), compared as integers."""
-    if not values.size:
-        return True
-    if int(values.max()) > _EXACT_INTEGER:
-        return False
-    return values.dtype.kind == "u" or int(values.min()) >= -_EXACT_INTEGER
-
-
 def _value_references(vrs: Sequence[int]):
     return (c_vr * len(vrs))(*vrs)
 
 
 def _pointer(array: np.ndarray, fmi_type: str):
     return array.ctypes.data_as(ctypes.POINTER(_NUMERIC[fmi_type][1]))
-
-
-@dataclass
-class _InputPort:
-    """A writable port: its float64 slot and, for other types, the native buffer it is cast to."""
-
-    name: str
-    call: str
-    size: int
-    vr: object
-    slot: np.ndarray
-    native: np.ndarray
-    pointer: object
-    setter: object
-    exact: bool   # integer and Boolean values must survive the cast unchanged
-    cast: bool    # native is not slot
-
-
-@dataclass
-class _OutputGroup:
-    """Observed ports of one type, read with one call into ``native`` then cast into ``slot``."""
-
-    call: str
-    count: int
-    size: int
-    vrs: object
-    slot: np.ndarray
-    native: np.ndarray
-    pointer: object
-    getter: object
-    cast: bool
-    wide: bool    # 64-bit integers: checked to fit float64 exactly
-    names: tuple
 
 
 # -- the instance ----------------------------------------------------------------------------------
@@ -449,10 +387,10 @@ class Fmi3Instance:
         # the instance's address (a Python int converts to a pointer argument faster than a c_void_p)
         self._handle: int | None = None
         self.live_handle: int | None = None   # the handle while calls are allowed (not freed, no fmi3Fatal)
-        self._inputs: list[_InputPort] = []
-        self._input_ports: dict[str, _InputPort] = {}
+        self._inputs: list[InputPort] = []
+        self._input_ports: dict[str, InputPort] = {}
         self._input_index: dict[str, int] = {}
-        self._groups: list[_OutputGroup] = []
+        self._groups: list[OutputGroup] = []
         self.input_slots: dict[str, np.ndarray] = {}
         self.output_views: dict[str, np.ndarray] = {}
         # fmi3DoStep's out-arguments, allocated once
@@ -649,7 +587,7 @@ class Fmi3Instance:
             slot = in_buffer[start:stop]
             cast = port.type != "Float64"
             native = np.zeros(port.size, dtype=NATIVE_DTYPES[port.type]) if cast else slot
-            self._inputs.append(_InputPort(
+            self._inputs.append(InputPort(
                 name=name, call=f"fmi3Set{function_suffix(port.type)}({name})", size=port.size,
                 vr=_value_references([port.value_reference]), slot=slot, native=native,
                 pointer=_pointer(native, port.type), setter=self._function(f"fmi3Set{function_suffix(port.type)}"),
@@ -666,7 +604,7 @@ class Fmi3Instance:
             cast = fmi_type != "Float64"
             native = np.zeros(stop - start, dtype=NATIVE_DTYPES[fmi_type]) if cast else slot
             suffix = function_suffix(fmi_type)
-            self._groups.append(_OutputGroup(
+            self._groups.append(OutputGroup(
                 call=f"fmi3Get{suffix}({', '.join(names)})", count=len(names), size=stop - start,
                 vrs=_value_references([ports[n].value_reference for n in names]), slot=slot,
                 native=native, pointer=_pointer(native, fmi_type), getter=self._function(f"fmi3Get{suffix}"),
@@ -686,7 +624,7 @@ class Fmi3Instance:
         return [p.name for p in self._inputs]
 
     @property
-    def output_groups(self) -> list[_OutputGroup]:
+    def output_groups(self) -> list[OutputGroup]:
         """The bound observed ports, one group per type in buffer order: what :meth:`pull` reads."""
         return self._groups
 
@@ -694,7 +632,7 @@ class Fmi3Instance:
         return self._input_index.get(name)
 
     @property
-    def input_ports(self) -> dict[str, _InputPort]:
+    def input_ports(self) -> dict[str, InputPort]:
         """The bound inputs by name: records with ``slot`` (the float64 view) and ``size``, for :meth:`push_port`."""
         return self._input_ports
 
@@ -720,7 +658,7 @@ class Fmi3Instance:
             for i in indices:
                 self._push(inputs[i])
 
-    def _push(self, port: _InputPort) -> None:
+    def _push(self, port: InputPort) -> None:
         if port.cast:
             np.copyto(port.native, port.slot, casting="unsafe")
             if port.exact and not np.array_equal(port.native, port.slot):
@@ -750,15 +688,15 @@ class Fmi3Instance:
             if status or len(messages) != mark:
                 self.check_status(group.call, status, mark)
             if group.cast:
-                if group.wide and not _exact_in_float64(group.native):
+                if group.wide and not exact_in_float64(group.native):
                     self.refuse_wide(group)
                 np.copyto(group.slot, group.native, casting="unsafe")
 
-    def refuse_wide(self, group: _OutputGroup) -> None:
+    def refuse_wide(self, group: OutputGroup) -> None:
         for name, a, b in group.names:
             values = group.native[a:b]
-            if not _exact_in_float64(values):
-                bad = next(v for v in values.tolist() if abs(v) > _EXACT_INTEGER)
+            if not exact_in_float64(values):
+                bad = next(v for v in values.tolist() if abs(v) > EXACT_INTEGER)
                 raise FmuCallError(self.name, group.call, self.time,
                                    f"{name} = {int(bad)} is beyond 2**53 and would not survive the master's float64 "
                                    "values exactly")

@@ -4,7 +4,7 @@ All values crossing the protocol are 1-D float64 arrays; integer types, Booleans
 values are carried exactly as float64. The FMU is called through the project's FMI 3.0 binding
 (:mod:`orchestration.hosts.fmi3`): the hot path (``set_inputs``, ``start_step``, ``finish_step``,
 ``get_outputs``) is the binding's ``push``/``do_step``/``pull`` over preallocated value-reference
-arrays and float64 buffers laid out by :func:`slot_layout`: Float64 ports first, so that all
+arrays and float64 buffers laid out by :func:`~orchestration.hosts.buffers.slot_layout`: Float64 ports first, so that all
 observed Float64 ports are read with one ``fmi3GetFloat64`` call straight into the buffer (the
 other types through a small native buffer, converted by one copy per type). The layout is a pure
 function of the port lists, which is what lets the worker host (orchestration/worker.py) place
@@ -27,15 +27,14 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from orchestration.errors import LOG_LEVELS, FmuBinaryError, FmuCallError
+from orchestration.hosts.buffers import exact_in_float64
 from orchestration.hosts.fmi3 import (
-    NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, _exact_in_float64, required_functions, resource_path,
-    slot_layout)
+    NATIVE_DTYPES, Fmi3Instance, Fmi3Library, StepResult, required_functions, resource_path)
 from orchestration.hosts.description import INTEGER_RANGES, FmuDescription, PortInfo, parse_binary
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists", "slot_layout",
-           "NATIVE_DTYPES"]
+__all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists"]
 
 
 
@@ -230,7 +229,7 @@ class InProcessFmu:
                                              "supported (get_native reads them)")
         result: dict[str, np.ndarray] = {}
         for name, native in self.get_native(names).items():
-            if native.dtype.kind in "iu" and not _exact_in_float64(native):
+            if native.dtype.kind in "iu" and not exact_in_float64(native):
                 raise FmuCallError(self.name, f"get_values({name})", self.instance.time,
                                    f"{name} holds a value beyond 2**53, which float64 does not hold exactly")
             result[name] = native.astype(np.float64).reshape(self.ports[name].size)
@@ -253,7 +252,7 @@ class InProcessFmu:
 
     def bind(self, inputs: list[str], observed: list[str], in_buffer: np.ndarray | None = None,
              out_buffer: np.ndarray | None = None) -> None:
-        """Bind the ports over float64 buffers laid out by :func:`slot_layout` (new ones, or shared memory)."""
+        """Bind the ports over float64 buffers laid out by :func:`~orchestration.hosts.buffers.slot_layout` (new ones, or shared memory)."""
         instance = self._require_instance("configure")
         instance.bind(self.ports, inputs, observed, in_buffer, out_buffer)
         self._input_slots = instance.input_slots

@@ -4,7 +4,7 @@ The worker (a "spawn" child) runs an :class:`~orchestration.hosts.in_process.InP
 replies are tiny tuples over a ``multiprocessing.Pipe`` (the protocol: :class:`Command` and
 :class:`Reply`, below); every value array moves through one ``SharedMemory`` block allocated by
 ``configure``: ``[inputs | observed outputs]`` as float64 slots laid out by
-:func:`~orchestration.hosts.in_process.slot_layout`. A step is: the master writes the inputs into their
+:func:`~orchestration.hosts.buffers.slot_layout`. A step is: the master writes the inputs into their
 slots and sends ``(STEP, t, h, which)``; the worker pushes those slots into the FMU, steps, reads
 the observed outputs into their slots and replies with fmi3DoStep's flags. No array is pickled.
 
@@ -41,7 +41,8 @@ from multiprocessing.shared_memory import SharedMemory
 import numpy as np
 
 from orchestration.errors import LOG_LEVELS, FmuCallError, OrchestrationError, WorkerCrash, exit_description
-from orchestration.hosts.in_process import InProcessFmu, PortConfigurationError, check_port_lists, slot_layout
+from orchestration.hosts.buffers import slot_layout
+from orchestration.hosts.in_process import InProcessFmu, PortConfigurationError, check_port_lists
 from orchestration.hosts.native_threads import limit_native_threads
 from orchestration.hosts.description import FmuDescription, PortInfo
 from orchestration.stopping import STOP_SIGNALS, RecentSlowest, start_shielded
