@@ -21,8 +21,7 @@ cost included) on preallocated numpy buffers; the two FMU instances and the dire
 in blocks in one process so that machine noise hits all alike, and each reports the median of its
 steps. The FMI cost is the difference of the medians; the last step's outputs must agree to the bit.
 
-Targets: FMI cost <= 10 us per step with the model in the importer's process (from about 120 us
-with pythonfmu3, measured on this machine before the layer was replaced), <= 20 us per Contact
+Targets: FMI cost <= 10 us per step with the model in the importer's process, <= 20 us per Contact
 step through the helper process.
 
 Run: .venv/bin/python benchmarks/bench_fmi_layer.py

@@ -6,8 +6,8 @@ arrive every 33 haptic steps (30 Hz vs 1 kHz) with a smooth breathing deformatio
 a 30-point catheter centerline (capsules of 1 mm) moving in and out and pressing its tip into
 the aneurysm wall, and a single probe point pressed in and out while sliding along the wall.
 
-Local models: "hold" and "extrapolate" (frozen facets) and "compliance" (the default since issue
-12: the wall yields at 1 kHz through the compliance W of the patch the contact names; here W is a
+Local models: "hold" and "extrapolate" (frozen facets) and "compliance" (the default: the wall
+yields at 1 kHz through the compliance W of the patch the contact names; here W is a
 synthetic wall compliance of the named nodes, c exp(-|xi - xj|^2 / l^2) per axis with
 c = 1/70 m/N (about the AAA wall's point compliance, 0.23 N -> 3 mm) and l = 5 mm, sent with each
 frame for the ids named at the frame before, as the Tissue FMU will; the breathing frames are free

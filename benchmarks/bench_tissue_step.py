@@ -1,15 +1,15 @@
-"""Implicit tissue step against the 30 Hz frame budget (33.3 ms), at growing wall sizes (issue 13).
+"""Implicit tissue step against the 30 Hz frame budget (33.3 ms), at growing wall sizes.
 
-Setting (issue 13): ETMM or linear law, implicit backward Euler at 30 Hz, viscosity 50 Pa s,
+Setting: ETMM or linear law, implicit backward Euler at 30 Hz, viscosity 50 Pa s,
 force in -x spread over the 4 surface nodes nearest the sac contact point (0.022, 0, 0.065), full
 wall active; step time = median of the timed steps after 3 warm-up steps (mean and max are
 printed too: a refactorisation shows up there).  Everything is measured side by side in one run;
 this 2-core machine is shared, so compare the ratios, not the absolute times, between runs.
 
 Printed:
-  1. the issue's cases, the current step against the former implementation (rest-state
-     factorisation as GMRES preconditioner, consistent ETMM tangent over every candidate tet,
-     no extrapolated warm start), and the ETMM / linear cost at the same load;
+  1. the frame-budget cases, the step against a baseline without the maintained factorisation
+     (rest-state factorisation as GMRES preconditioner, consistent ETMM tangent over every
+     candidate tet, no extrapolated warm start), and the ETMM / linear cost at the same load;
   2. how the step cost grows with the node count (>= 3 wall sizes) and where it goes: force
      (add_forces), tangent products, factorisation (rest factor, Woodbury columns and
      corrections, tangent refactorisations), solves (factor applications), other;
@@ -53,12 +53,12 @@ def patch_force(model: TissueModel, total: float, k: int = 4) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------
-# the former implementation (before issue 13), for the before/after columns
+# the baseline: the step without the maintained factorisation, for the comparison columns
 # --------------------------------------------------------------------------------------
 
 
-class _FormerBackwardEuler(BackwardEuler):
-    """The step as it was: separate tangent and damping products, the all-candidate consistent
+class _BaselineBackwardEuler(BackwardEuler):
+    """The baseline step: separate tangent and damping products, the all-candidate consistent
     ETMM kernel, the warm start without extrapolation."""
 
     def _apply_system(self, p, out):
@@ -74,13 +74,13 @@ class _FormerBackwardEuler(BackwardEuler):
         out += tmp
 
 
-def former_model(mesh, law: str) -> TissueModel:
+def baseline_model(mesh, law: str) -> TissueModel:
     model = TissueModel(mesh, TissueParameters(law=law, viscosity=VISCOSITY))
     ff = model.force_field
     damping = ff.damping_tensors()
     pc = FactorizedPreconditioner(ff.stiffness_matrix(), model.masses, model.fixed,
                                   damping=None if damping is None else tensors_to_csr(damping))
-    integrator = _FormerBackwardEuler(ff, model.masses, model.fixed, model.params.cg_tolerance,
+    integrator = _BaselineBackwardEuler(ff, model.masses, model.fixed, model.params.cg_tolerance,
                                       model.params.cg_max_iterations, viscous=True, preconditioner=pc)
     integrator.extrapolate = False
     if law == "etmm":
@@ -184,7 +184,7 @@ HEADER = f"{'case':46s} {'median':>8s} {'mean':>8s} {'max':>8s} {'iters':>6s} {'
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=10, help="timed steps per case (after 3 warm-up steps)")
-    parser.add_argument("--quick", action="store_true", help="skip the largest wall and the former 64x80x2 run")
+    parser.add_argument("--quick", action="store_true", help="skip the largest wall and the 64x80x2 baseline run")
     parser.add_argument("--only", type=int, default=0, help="run only this section (5: the tangent alternatives)")
     args = parser.parse_args()
     steps = args.steps
@@ -196,45 +196,60 @@ def main() -> None:
     print(f"frame budget {BUDGET_MS:.1f} ms; rest factor backend: {default_backend()} (installed: "
           f"{', '.join(installed)}; see tissue_fmu.factorization.BACKENDS)")
 
-    # 1. the issue's cases, before and after
+    # 1. the frame-budget cases, the step and the baseline
     default = aaa_mesh()
     big = aaa_mesh(n_circumferential=64, n_axial=80, n_radial=2)
     with tempfile.TemporaryDirectory() as folder:  # the same wall through a mesh file
         path = os.path.join(folder, "wall_64x80x2.vtu")
         save_mesh(big, path)
         from_file = load_mesh(path)
-    print(f"\n1. issue 13 cases (ms per step; median/mean/max of {steps} after 3)")
+    frame_budget_cases(default, big, from_file, steps, args.quick)
+    # 2. growth with the node count and where the time goes
+    sizes = [(32, 40, 2), (48, 60, 2), (64, 80, 2)] + ([] if args.quick else [(80, 100, 2)])
+    growth(sizes, steps)
+    # 3. choices, one at a time (default wall, ETMM, 5 N; and 64x80x2, 0.5 N for the backend)
+    choices(default, big, installed, steps)
+    # 4. compliance cost
+    compliance_cost(default, steps)
+    # 5. tangent-mode alternatives and the rest solve
+    tangent_alternatives(default, big, sizes)
+
+
+def frame_budget_cases(default, big, from_file, steps: int, quick: bool) -> None:
+    """Section 1: the frame-budget cases, the step against the baseline, ETMM against linear."""
+    print(f"\n1. frame-budget cases (ms per step; median/mean/max of {steps} after 3)")
     print(HEADER)
     results = {}
-    for label, mesh, law, load, former in [
+    for label, mesh, law, load, baseline in [
         ("default wall, linear, 5 N", default, "linear", 5.0, False),
         ("default wall, etmm, 5 N", default, "etmm", 5.0, False),
-        ("default wall, etmm, 5 N, former", default, "etmm", 5.0, True),
-        ("default wall, linear, 5 N, former", default, "linear", 5.0, True),
+        ("default wall, etmm, 5 N, baseline", default, "etmm", 5.0, True),
+        ("default wall, linear, 5 N, baseline", default, "linear", 5.0, True),
         ("64x80x2 wall, linear, 0.5 N", big, "linear", 0.5, False),
         ("64x80x2 wall, etmm, 0.5 N", big, "etmm", 0.5, False),
-        ("64x80x2 wall, etmm, 0.5 N, former", big, "etmm", 0.5, True),
+        ("64x80x2 wall, etmm, 0.5 N, baseline", big, "etmm", 0.5, True),
         ("64x80x2 wall from a .vtu file, etmm, 0.5 N", from_file, "etmm", 0.5, False),
     ]:
-        if former and mesh is big and args.quick:
+        if baseline and mesh is big and quick:
             continue
-        model = former_model(mesh, law) if former else TissueModel(mesh, TissueParameters(law=law, viscosity=VISCOSITY))
+        model = baseline_model(mesh, law) if baseline else TissueModel(mesh, TissueParameters(law=law, viscosity=VISCOSITY))
         results[label] = r = run(model, load, steps)
         print(line(label, r))
     a, b = results["default wall, etmm, 5 N"], results["default wall, linear, 5 N"]
     print(f"ETMM / linear at 5 N (default wall): median {a['median'] / b['median']:.2f}, mean {a['mean'] / b['mean']:.2f}"
           f"  (target <= 1.5; the paper reports 4)")
-    f = results["default wall, etmm, 5 N, former"]
-    print(f"speed-up over the former step, default wall ETMM 5 N: median {f['median'] / a['median']:.1f}x, "
-          f"mean {f['mean'] / a['mean']:.1f}x; max |u - u_former| / max |u| = "
+    f = results["default wall, etmm, 5 N, baseline"]
+    print(f"speed-up over the baseline step, default wall ETMM 5 N: median {f['median'] / a['median']:.1f}x, "
+          f"mean {f['mean'] / a['mean']:.1f}x; max |u - u_baseline| / max |u| = "
           f"{np.abs(a['displacement'] - f['displacement']).max() / np.abs(f['displacement']).max():.1e}")
-    if "64x80x2 wall, etmm, 0.5 N, former" in results:
-        f, a = results["64x80x2 wall, etmm, 0.5 N, former"], results["64x80x2 wall, etmm, 0.5 N"]
-        print(f"speed-up over the former step, 64x80x2 ETMM 0.5 N: median {f['median'] / a['median']:.1f}x")
+    if "64x80x2 wall, etmm, 0.5 N, baseline" in results:
+        f, a = results["64x80x2 wall, etmm, 0.5 N, baseline"], results["64x80x2 wall, etmm, 0.5 N"]
+        print(f"speed-up over the baseline step, 64x80x2 ETMM 0.5 N: median {f['median'] / a['median']:.1f}x")
     print(f"64x80x2 ETMM 0.5 N / linear 0.5 N: {results['64x80x2 wall, etmm, 0.5 N']['median'] / results['64x80x2 wall, linear, 0.5 N']['median']:.2f}")
 
-    # 2. growth with the node count and where the time goes
-    sizes = [(32, 40, 2), (48, 60, 2), (64, 80, 2)] + ([] if args.quick else [(80, 100, 2)])
+
+def growth(sizes, steps: int) -> None:
+    """Section 2: the step's cost by wall size and load, and where it goes."""
     print("\n2. growth with the node count (etmm, 0.5 N and 5 N; ms per step, mean of the timed steps)")
     print(f"{'wall':10s} {'nodes':>6s} {'load':>5s} {'median':>8s} {'mean':>8s} {'force':>7s} {'tangent':>8s} "
           f"{'factor':>7s} {'solves':>7s} {'other':>7s} {'iters':>6s} {'mode':>8s}")
@@ -248,10 +263,12 @@ def main() -> None:
                   f"{p.get('force', 0):7.2f} {p.get('tangent', 0):8.2f} {p.get('factorisation', 0):7.2f} "
                   f"{p.get('solves', 0):7.2f} {p['other']:7.2f} {r['iterations']:6.2f} {r['mode']:>8s}")
 
-    # 3. choices, one at a time (default wall, ETMM, 5 N; and 64x80x2, 0.5 N for the backend)
+
+def choices(default, big, installed, steps: int) -> None:
+    """Section 3: each tangent strategy and solver backend against the chosen one."""
     print("\n3. choices measured one at a time (ms per step)")
     print(HEADER)
-    choices = [
+    cases = [
         ("default, 5 N: chosen (budget 24, >6 its)", default, 5.0, {}),
         ("default, 5 N: refactor every step", default, 5.0, dict(refactor_iterations=0)),
         ("default, 5 N: refactor when > 2 its", default, 5.0, dict(refactor_iterations=2, refactor_budget=10**9)),
@@ -262,10 +279,10 @@ def main() -> None:
         ("64x80x2, 0.5 N: assembled tangent instead", big, 0.5, dict(max_lowrank_dofs=-1)),
     ]
     for backend in installed:  # the rest factor's backends side by side (the same steps otherwise)
-        choices += [(f"64x80x2, 0.5 N: rest factor by {backend}", big, 0.5, dict(backend=backend)),
-                    (f"64x80x2, 0.5 N linear: {backend}", big, 0.5, dict(law="linear", backend=backend)),
-                    (f"default, 0.5 N linear: {backend}", default, 0.5, dict(law="linear", backend=backend))]
-    for label, mesh, load, options in choices:
+        cases += [(f"64x80x2, 0.5 N: rest factor by {backend}", big, 0.5, dict(backend=backend)),
+                  (f"64x80x2, 0.5 N linear: {backend}", big, 0.5, dict(law="linear", backend=backend)),
+                  (f"default, 0.5 N linear: {backend}", default, 0.5, dict(law="linear", backend=backend))]
+    for label, mesh, load, options in cases:
         options = dict(options)
         model = TissueModel(mesh, TissueParameters(law=options.pop("law", "etmm"), viscosity=VISCOSITY))
         if options.pop("rest_only", False):
@@ -281,7 +298,9 @@ def main() -> None:
             setattr(model.integrator.preconditioner, key, value)
         print(line(label, run(model, load, steps)))
 
-    # 4. compliance cost
+
+def compliance_cost(default, steps: int) -> None:
+    """Section 4: the compliance block for p = 4..16 contact nodes, relative to one step."""
     print("\n4. compliance block (default wall, etmm) relative to one step: first call for a patch (its"
           "\n   columns solved), and again for the same patch (cached columns; what a per-step caller pays)")
     for load in (0.5, 5.0):
@@ -301,9 +320,6 @@ def main() -> None:
             print(f"  {load:3.1f} N, p = {p:2d} ({3 * p:2d} columns, mode {fresh.integrator.preconditioner.mode:7s}): "
                   f"first {first:7.1f} ms = {first / r['median']:5.2f} x the step, again {again:6.2f} ms = "
                   f"{again / r['median']:5.3f} x the step ({r['median']:.1f} ms)")
-
-    # 5. tangent-mode alternatives and the rest solve
-    tangent_alternatives(default, big, sizes)
 
 
 def _best_ms(function, repeat: int = 3):

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -431,3 +432,88 @@ def test_cached_kernels_are_loaded_at_instantiation_not_in_a_step(contact_fmu, t
     assert len(used) >= 5                                        # the steps compiled kernels
     assert {name for name, count in instantiated.items() if count} >= used
     assert end == instantiated                                   # ... and the steps loaded none
+
+
+# ---- the codes the Python runtime shares with the C layer ---------------------------------------
+
+LAYER = Path(__file__).resolve().parent.parent / "src" / "fmi3_layer"
+
+
+def _c_enums(*paths: Path) -> dict[str, int | None]:
+    """Every enumerator of the enums in these C files, by name, valued as C values it (an
+    enumerator without ``= value`` is the one before it plus 1, the first 0). A value this reader
+    does not evaluate (other than an integer literal or ``a << b``) is None, and so are the
+    enumerators that count on from it."""
+    import re
+
+    def literal(word: str) -> int:
+        return int(word.rstrip("uUlL"), 0)
+
+    enumerators = {}
+    for path in paths:
+        text = re.sub(r"/\*.*?\*/|//[^\n]*", " ", path.read_text(), flags=re.S)
+        for body in re.findall(r"\benum\b\s*\w*\s*\{(.*?)\}", text, flags=re.S):
+            value = -1
+            for item in filter(None, (part.strip() for part in body.split(","))):
+                name, _, given = (word.strip() for word in item.partition("="))
+                if given:
+                    shift = re.fullmatch(r"(\w+)\s*<<\s*(\w+)", given)
+                    try:
+                        value = literal(shift[1]) << literal(shift[2]) if shift else literal(given)
+                    except ValueError:
+                        value = None
+                elif value is not None:
+                    value += 1
+                enumerators[name] = value
+    return enumerators
+
+
+def test_the_c_enum_reader_counts_as_c_does(tmp_path):
+    header = tmp_path / "codes.h"
+    header.write_text("/* a, b */ typedef enum { A, B, /* C = 9 */ } X;\n"
+                      "enum { D = 1, E, F = 0x10u, G, // H = 3\n H = 1 << 3, I = H | D, J };\n")
+    assert _c_enums(header) == {"A": 0, "B": 1, "D": 1, "E": 2, "F": 16, "G": 17, "H": 8, "I": None,
+                                "J": None}
+
+
+def _load_runtime():
+    import importlib.util
+    import sys
+
+    name = "_test_fmi_layer_fmi3_runtime"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, LAYER / "fmi3_runtime.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def _c_name(prefix: str, name: str) -> str:
+    """The C enumerator of a Python code name: "calculatedParameter" -> C_CALCULATED_PARAMETER."""
+    import re
+
+    return prefix + re.sub(r"(?<=[a-z])(?=[A-Z])", "_", name).upper()
+
+
+def test_the_runtimes_codes_are_the_c_layers():
+    """fmi3_runtime.py mirrors C enums by value: fmi3Status (the standard's header), the variable
+    table's type, causality and variability codes (variables.h) and the step exchange's slots
+    (fmi3Functions.c). A code that drifts on either side pairs values wrongly without any error."""
+    runtime = _load_runtime()
+    c = _c_enums(LAYER / "include" / "fmi3FunctionTypes.h", LAYER / "variables.h", LAYER / "fmi3Functions.c")
+    status = {"OK": "fmi3OK", "WARNING": "fmi3Warning", "DISCARD": "fmi3Discard", "ERROR": "fmi3Error",
+              "FATAL": "fmi3Fatal"}
+    pairs = {f"{name} ({c_name})": (getattr(runtime, name), c.get(c_name)) for name, c_name in status.items()}
+    for table, prefix in (("TYPE_CODES", "T_"), ("CAUSALITY_CODES", "C_"), ("VARIABILITY_CODES", "V_")):
+        pairs.update({f"{table}[{name!r}]": (code, c.get(_c_name(prefix, name)))
+                      for name, code in getattr(runtime, table).items()})
+    for name in ("IO_TIME", "IO_STEP", "IO_SUBSTEPS", "IO_STATUS", "IO_COMPLETED", "IO_MAX_SUBSTEPS",
+                 "STEP_IO_SIZE"):
+        pairs[name] = (getattr(runtime, name), c.get(name))
+    drifted = {name: f"Python {python}, C {c_value}" for name, (python, c_value) in pairs.items()
+               if python != c_value}
+    assert not drifted, f"fmi3_runtime.py disagrees with the C layer: {drifted}"
+    assert set(runtime.DTYPES) <= set(runtime.TYPE_CODES)
+    # every slot of the step exchange has its Python name
+    assert runtime.STEP_IO_SIZE == c["STEP_IO_SIZE"] == c["IO_MAX_SUBSTEPS"] + 1

@@ -315,6 +315,14 @@ def test_vertices_without_compliance_are_rigid_and_no_W_renders_as_hold():
 
 
 # ---------------------------------------------------------------------------- the solve
+def _contact_state(face, w, n, depth, rate):
+    """The contact state tuple of these contacts (no segment parameter, prediction or forces of
+    their own: compliance_forces takes its ahead and fmag)."""
+    m = face.shape[0]
+    return rendering_kernels.contact_state(face, w, n, depth, rate, np.zeros(m), np.zeros(m), np.zeros(m),
+                                           np.zeros(m))
+
+
 def reference_solve(depth, rate, A, W, g_prev, law, k, b, d0, dt, hold):
     """Plain numpy: f with delta = depth - A^T W (g(f) - g_prev), g(f) = -A f, rate' = rate +
     (delta - depth)/dt, f_i = law(delta_i, rate'_i) where delta_i > 0 and f_i = 0 elsewhere (active
@@ -394,10 +402,13 @@ def test_compliance_solve_matches_dense_reference(law):
         d_arr = np.concatenate([depth, [0.0, 0.0]])
         r_arr = np.concatenate([rate, [0.0, 0.0]])
         fmag, g_out = np.zeros(n_prim), np.zeros(3 * p)
-        work = (np.zeros(n_prim, np.int64), np.zeros((n_prim, 3 * p)), np.zeros((n_prim, n_prim)),
-                np.zeros((n_prim, n_prim)), np.zeros(n_prim), np.zeros(n_prim), np.zeros(n_prim))
-        iterations = rendering_kernels.compliance_forces(face_arr, w_arr, n_arr, d_arr, r_arr, tri, slot, W, g_prev,
-                                                         r_arr * hold, law, k, b, d0, dt, 30, 1e-13, fmag, g_out, *work)
+        work = rendering_kernels.solve_work(np.zeros(n_prim, np.int64), np.zeros((n_prim, 3 * p)),
+                                            np.zeros((n_prim, n_prim)), np.zeros((n_prim, n_prim)),
+                                            np.zeros((3, n_prim)))
+        contacts = _contact_state(face_arr, w_arr, n_arr, d_arr, r_arr)
+        iterations = rendering_kernels.compliance_forces(contacts, r_arr * hold, fmag, tri, slot, W, g_prev,
+                                                         rendering_kernels.penalty_law(law, k, b, d0), dt, 30, 1e-13,
+                                                         g_out, work)
         assert iterations > 0
         np.testing.assert_allclose(fmag[:m], expected, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(g_out, -A @ expected, rtol=1e-9, atol=1e-12)
@@ -640,21 +651,19 @@ def test_damped_onset_rests_the_wall_at_the_tool():
     face, w, n = np.array([0], np.int64), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
     depth, rate = np.array([d]), np.array([0.5])              # 0.5 m/s into the wall: f(0+) = 1 N > d / c
     fmag, g_out = np.zeros(1), np.zeros(3)
-    work = (np.zeros(1, np.int64), np.zeros((1, 3)), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1), np.zeros(1),
-            np.zeros(1))
-    iterations = rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3),
-                                                     np.zeros(1), penalty_kernels.LAW_LINEAR, k, b, 1e-3, dt, 8, 1e-13,
-                                                     fmag,
-                                                     g_out, *work)
+    work = rendering_kernels.solve_work(np.zeros(1, np.int64), np.zeros((1, 3)), np.zeros((1, 1)), np.zeros((1, 1)),
+                                        np.zeros((3, 1)))
+    law = rendering_kernels.penalty_law(penalty_kernels.LAW_LINEAR, k, b, 1e-3)
+    iterations = rendering_kernels.compliance_forces(_contact_state(face, w, n, depth, rate), np.zeros(1), fmag, tri,
+                                                     slot, W, np.zeros(3), law, dt, 8, 1e-13, g_out, work)
     assert iterations > 8                                     # solved by the fallback
     assert fmag[0] == pytest.approx(d / c, rel=1e-12) and depth[0] == pytest.approx(0.0, abs=1e-18)
     assert face[0] == 0                                       # still a contact, at depth 0
     np.testing.assert_allclose(g_out, [0.0, 0.0, -d / c], rtol=1e-12)
     # slower: the law's own answer, (k + b/dt) delta + b (rate - d/dt) = (d - delta) / c
     depth, rate, face = np.array([d]), np.array([0.01]), np.array([0], np.int64)
-    rendering_kernels.compliance_forces(face, w, n, depth, rate, tri, slot, W, np.zeros(3), np.zeros(1),
-                                        penalty_kernels.LAW_LINEAR,
-                                        k, b, 1e-3, dt, 8, 1e-13, fmag, g_out, *work)
+    rendering_kernels.compliance_forces(_contact_state(face, w, n, depth, rate), np.zeros(1), fmag, tri, slot, W,
+                                        np.zeros(3), law, dt, 8, 1e-13, g_out, work)
     delta = (d / c - b * (0.01 - d / dt)) / (k + b / dt + 1 / c)
     assert depth[0] == pytest.approx(delta, rel=1e-12) and fmag[0] == pytest.approx((d - delta) / c, rel=1e-12)
 

@@ -18,14 +18,12 @@ import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
 from tissue_fmu.forcefield import TensorMassForceField, assemble_stiffness
-from tissue_fmu.integrators import (
-    BackwardEuler,
+from tissue_fmu.errors import StabilityError, TissueError
+from tissue_fmu.integrators import BackwardEuler, SymplecticEuler
+from tissue_fmu.solvers import (
     BiCGStabWorkspace,
     CGWorkspace,
     GMRESWorkspace,
-    StabilityError,
-    SymplecticEuler,
-    TissueError,
     preconditioned_bicgstab,
     preconditioned_cg,
     preconditioned_gmres,

@@ -51,6 +51,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from . import kernels
+from ._checks import as_float, is_integer
 from .actuator import Actuator
 from .controller import EffortMonitor, ForceRegulator
 from .geometry import CenterlineCurve
@@ -73,12 +74,9 @@ class CatheterParameterError(ValueError):
 def _number(name: str, value, example: str) -> float:
     if type(value) is float and math.isfinite(value):  # the 1 kHz common case, checked cheaply
         return value
-    if isinstance(value, (bool, np.bool_)):
+    x = None if isinstance(value, (bool, np.bool_)) else as_float(value)
+    if x is None:
         raise CatheterParameterError(f"{name} must be a number (got {value!r}): e.g. {example}")
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise CatheterParameterError(f"{name} must be a number (got {value!r}): e.g. {example}") from None
     if not math.isfinite(x):
         raise CatheterParameterError(f"{name} must be finite (got {value!r}): e.g. {example}")
     return x
@@ -160,7 +158,7 @@ class CatheterParameters:
         """Raise CatheterParameterError naming the first bad field and the fix."""
         dt = _positive("dt", dt, "1e-3 (s, the communication step)")
         n = self.n_segments
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+        if not is_integer(n) or n < 1:
             raise CatheterParameterError(f"n_segments must be an integer >= 1 (got {n!r}): e.g. 30")
         seg = _positive("segment_length", self.segment_length, "0.005 (m)")
         _positive("radius", self.radius, "0.001 (m, 2 mm diameter = 6 Fr)")

@@ -62,9 +62,11 @@ def _load_sibling(name: str):
 _state_format = _load_sibling("state_format")
 StateFormatError = _state_format.StateFormatError
 
+#: fmi3Status (include/fmi3FunctionTypes.h). These codes and the ones below mirror C enums by value:
+#: tests/test_fmi_layer.py reads the C files and fails when the two sides differ.
 OK, WARNING, DISCARD, ERROR, FATAL = range(5)
 
-#: Codes shared with fmi3Functions.c (T_*, C_*, V_*).
+#: Codes of the C layer's variable table (variables.h: T_*, C_*, V_*).
 TYPE_CODES = {"Float64": 1, "Int32": 7, "UInt64": 10, "Boolean": 11, "String": 12}
 CAUSALITY_CODES = {"parameter": 1, "calculatedParameter": 2, "structuralParameter": 3, "input": 4, "output": 5,
                    "independent": 7}

@@ -7,7 +7,7 @@ Modules, by role (as SOFA's collision pipeline and haptic rendering)
 - response: `penalty` (+ `penalty_kernels`): penalty laws, forces on the tool and the tissue.
 - rendering: `rendering` (+ `rendering_kernels`): the local models between tissue frames,
   "compliance" (default: the wall yields through the compliance W from Tissue), "hold",
-  "extrapolate"; the patch the contact names for W. (`local_model` is its former name.)
+  "extrapolate"; the patch the contact names for W.
 - passivity: `passivity`: passivity observer and controller of the haptic port (Hannaford and Ryu 2002).
 - `model`: `ContactParameters`, `ContactModel` (the object the FMU wrapper delegates to);
   `ContactModel.step` runs the stages in that order.

@@ -74,8 +74,8 @@ def refit_tree(lo, hi, order, n_nodes, node_lo, node_hi, left, right, start, cou
     """Recompute node boxes bottom-up for new primitive boxes, same topology: O(m).
 
     Boxes are finite (the callers validate them), so plain comparisons stand for min and max:
-    each node's box is built in registers and written once (2.5x faster than updating it in
-    place entry by entry, measured; this runs at every tissue frame inside the 1 kHz loop)."""
+    each node's box is built in registers and written once (faster than updating it in place entry
+    by entry; this runs at every tissue frame inside the 1 kHz loop)."""
     for node in range(n_nodes - 1, -1, -1):
         l = left[node]
         if l < 0:  # a leaf (the root of an empty tree has no primitives: an empty box)

@@ -9,8 +9,8 @@ to the device by it (its examples read ``m_maxLinearForce`` to size their effect
 world's physics is left as it is.
 
 Specification (:class:`DeviceSpec`)
-- ``max_force`` (N), default 7.9 N: the nominal maximum exertable force of the PHANTOM Desktop,
-  now 3D Systems Touch X ("maximum exertable force at nominal (orthogonal arms) position 7.9 N";
+- ``max_force`` (N), default 7.9 N: the nominal maximum exertable force of the PHANTOM Desktop
+  (3D Systems Touch X: "maximum exertable force at nominal (orthogonal arms) position 7.9 N";
   continuous 1.75 N; CHAI3D declares the same 7.9 N). The desktop device the shipped scenes'
   stiffness is chosen for (1000 N/m, "what a PHANTOM Desktop renders").
 - ``max_force_rate`` (N/s), default 10 000 N/s = 10 N per 1 ms step. The fastest change of a
@@ -60,6 +60,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ._checks import is_finite_real
+
 logger = logging.getLogger(__name__)
 
 #: PHANTOM Desktop / Touch X nominal maximum exertable force (N); see the module documentation.
@@ -96,8 +98,7 @@ class DeviceSpec:
         for name, example in (("max_force", "7.9 N for a PHANTOM Desktop / Touch X, 3.3 N for a Touch"),
                               ("max_force_rate", "10000 N/s (10 N per 1 ms step)")):
             value = getattr(self, name)
-            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                    or not (math.isfinite(value) and value > 0):
+            if not (is_finite_real(value) and value > 0):
                 raise DeviceError(f"{name} must be a finite number > 0 (got {value!r}): e.g. {example}")
 
     def max_step(self, dt: float) -> float:

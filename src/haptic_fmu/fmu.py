@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
-from .model import LOCAL_POLICIES, ContactModel, ContactParameters
+from .model import ContactModel, ContactParameters
+from .rendering import LOCAL_POLICIES
 
 DEFAULT_SURFACE_FILE = Path(__file__).resolve().parent / "default_tissue_surface.npz"
 

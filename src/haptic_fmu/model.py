@@ -50,14 +50,13 @@ run-time part for rollback.
 """
 import copy
 import logging
-import math
-import numbers
 from dataclasses import dataclass, fields
 
 import numpy as np
 
 from . import aabb, aabb_kernels, ccd, narrow_phase, penalty_kernels
 from . import rendering_kernels
+from ._checks import is_finite_real, is_integer
 from .geometry import all_finite, difference_velocity, max_displacement, max_displacement_rows
 from .device import DEFAULT_MAX_FORCE_RATE, PHANTOM_DESKTOP_MAX_FORCE, DeviceSpec, ForceLimiter
 from .passivity import DEFAULT_CYCLE_TOLERANCE, PassiveRenderer
@@ -82,12 +81,6 @@ class ContactParameterError(ValueError):
 
 class ContactInputError(ValueError):
     """A run-time input (tissue frame, tool positions, step) is invalid."""
-
-
-def _is_real(value) -> bool:
-    if type(value) is float:            # the 1 kHz common case, checked cheaply
-        return True
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclass
@@ -121,7 +114,7 @@ class ContactParameters:
     def validate(self) -> "ContactParameters":
         def positive(name, example):
             value = getattr(self, name)
-            if not (_is_real(value) and math.isfinite(value) and value > 0):
+            if not (is_finite_real(value) and value > 0):
                 raise ContactParameterError(f"{name} must be a finite number > 0 (got {value!r}): {example}")
 
         def choice(name, options):
@@ -130,7 +123,7 @@ class ContactParameters:
                 raise ContactParameterError(f"{name} must be one of {list(options)} (got {value!r})")
 
         positive("stiffness", "give the penalty stiffness k in N/m, e.g. 500")
-        if not (_is_real(self.damping) and math.isfinite(self.damping) and self.damping >= 0):
+        if not (is_finite_real(self.damping) and self.damping >= 0):
             raise ContactParameterError(
                 f"damping must be a finite number >= 0 (got {self.damping!r}): give b in N s/m, e.g. 0.1")
         positive("penalty_length", "give the non-linear penalty length d0 in m, e.g. 1e-3")
@@ -143,12 +136,11 @@ class ContactParameters:
         positive("max_force_rate", "give the fastest change of the rendered force in N/s, e.g. 10000 (10 N per "
                                    "1 ms step, twice a 10 kN/m wall under a hand at 0.5 m/s)")
         tolerance = self.passivity_cycle_tolerance
-        if not (_is_real(tolerance) and math.isfinite(tolerance) and tolerance >= 0):
+        if not (is_finite_real(tolerance) and tolerance >= 0):
             raise ContactParameterError(
                 f"passivity_cycle_tolerance must be a finite number >= 0 (got {tolerance!r}): the share of a contact "
                 "cycle's exchanged energy it may create before it is reported active, e.g. 1e-3")
-        if not (_is_real(self.tool_radius) and math.isfinite(self.tool_radius)
-                and self.tool_radius >= 0):
+        if not (is_finite_real(self.tool_radius) and self.tool_radius >= 0):
             raise ContactParameterError(
                 f"tool_radius must be a finite number >= 0 (got {self.tool_radius!r}): e.g. 0.001 m for 6 Fr")
         choice("penalty_law", tuple(PENALTY_LAWS))
@@ -160,7 +152,7 @@ class ContactParameters:
         for name, low, example in (("max_patch_nodes", 1, "16 surface nodes"),
                                    ("compliance_force_lag", 1, "2 frames (jacobi + average)")):
             value = getattr(self, name)
-            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
+            if not is_integer(value) or value < low:
                 raise ContactParameterError(f"{name} must be an integer >= {low} (got {value!r}): e.g. {example}")
         if not isinstance(self.energy_consistent, (bool, np.bool_)):
             raise ContactParameterError(
@@ -171,7 +163,7 @@ class ContactParameters:
         if self.passivity_controller and self.tool != "probe":
             # Its damping -alpha v acts on a haptic device's probe (a mass the operator holds). On a
             # catheter centerline it brakes every point of a kinematic chain that does not respond to
-            # it: measured on aaa_endovascular, the rendered force ran away to 1.3 kN.
+            # it: on aaa_endovascular the rendered force runs away to 1.3 kN.
             raise ContactParameterError(
                 "passivity_controller = true needs tool = 'probe' (the haptic device's point): with tool = "
                 f"{self.tool!r} there is no device to damp; set passivity_controller = false")
@@ -269,29 +261,36 @@ def _warm_up(interpolation) -> None:
                     model.step(k * 1e-3, 1e-3, path[k])
 
 
+def _checked_surface(surface_triangles, n_surface, n_tool, tool: str) -> np.ndarray:
+    """The surface's triangles as a C-contiguous int64 (t, 3) array, after the sizes' checks;
+    ContactParameterError naming the problem otherwise."""
+    if not (isinstance(n_surface, (int, np.integer)) and n_surface >= 3):
+        raise ContactParameterError(f"n_surface must be an integer >= 3 (got {n_surface!r})")
+    if not (isinstance(n_tool, (int, np.integer)) and n_tool >= 1):
+        raise ContactParameterError(f"n_tool must be an integer >= 1 (got {n_tool!r})")
+    if tool == "probe" and n_tool != 1:
+        raise ContactParameterError(f"n_tool must be 1 for tool='probe' (got {n_tool}); "
+                                    "use tool='centerline' for several points")
+    tri = np.asarray(surface_triangles)
+    if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0:
+        raise ContactParameterError(f"surface_triangles must have shape (t,3), t >= 1 (got {tri.shape})")
+    if not np.issubdtype(tri.dtype, np.integer):
+        if not np.all(np.asarray(tri, np.float64) == np.round(tri)):
+            raise ContactParameterError("surface_triangles must hold integer vertex ids")
+    tri = np.ascontiguousarray(tri, dtype=np.int64)
+    if tri.min() < 0 or tri.max() >= n_surface:
+        raise ContactParameterError(
+            f"surface_triangles must index surface nodes 0..{n_surface - 1} "
+            f"(got ids {tri.min()}..{tri.max()}): give local surface ids")
+    return tri
+
+
 class ContactModel:
     """Penalty contact and haptic rendering of a tool against the tissue surface."""
 
     def __init__(self, surface_triangles, n_surface: int, n_tool: int, params: ContactParameters | None = None):
         self.params = (params or ContactParameters()).validate()
-        if not (isinstance(n_surface, (int, np.integer)) and n_surface >= 3):
-            raise ContactParameterError(f"n_surface must be an integer >= 3 (got {n_surface!r})")
-        if not (isinstance(n_tool, (int, np.integer)) and n_tool >= 1):
-            raise ContactParameterError(f"n_tool must be an integer >= 1 (got {n_tool!r})")
-        if self.params.tool == "probe" and n_tool != 1:
-            raise ContactParameterError(f"n_tool must be 1 for tool='probe' (got {n_tool}); "
-                                        "use tool='centerline' for several points")
-        tri = np.asarray(surface_triangles)
-        if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0:
-            raise ContactParameterError(f"surface_triangles must have shape (t,3), t >= 1 (got {tri.shape})")
-        if not np.issubdtype(tri.dtype, np.integer):
-            if not np.all(np.asarray(tri, np.float64) == np.round(tri)):
-                raise ContactParameterError("surface_triangles must hold integer vertex ids")
-        tri = np.ascontiguousarray(tri, dtype=np.int64)
-        if tri.min() < 0 or tri.max() >= n_surface:
-            raise ContactParameterError(
-                f"surface_triangles must index surface nodes 0..{n_surface - 1} "
-                f"(got ids {tri.min()}..{tri.max()}): give local surface ids")
+        tri = _checked_surface(surface_triangles, n_surface, n_tool, self.params.tool)
         _warm_up(self.params.interpolation)
         self.triangles = tri
         self.n_surface = int(n_surface)
@@ -305,6 +304,12 @@ class ContactModel:
         self.compliance = (WallCompliance(self.n_surface, n_prim, p.max_patch_nodes, p.compliance_force_lag)
                            if p.local_model == "compliance" else None)
         self.tree = None
+        self._init_run_state()
+        self._init_contact_buffers(n_prim)
+        self._init_output_buffers()
+
+    def _init_run_state(self) -> None:
+        """No tissue frame and no tool position yet."""
         # tissue frames
         self._frame_t = None
         self._frame_pos = None
@@ -319,7 +324,11 @@ class ContactModel:
         self._tool_vel = np.zeros((self.n_tool, 3))   # differenced tool velocities (buffer)
         self._inside = np.zeros(self.n_tool, np.int8)
         self._entry_normal = np.zeros((self.n_tool, 3))
-        # narrow phase -> response: contact data per primitive (nodes, then segments)
+
+    def _init_contact_buffers(self, n_prim: int) -> None:
+        """The narrow phase's and the response's buffers: the contact data per primitive (nodes,
+        then segments), the hold's prediction and the forces the response gives the contacts."""
+        p = self.params
         self._contact_face = np.full(n_prim, -1, np.int64)     # local face, -1 when none
         self._contact_w = np.zeros((n_prim, 3))
         self._contact_n = np.zeros((n_prim, 3))
@@ -338,7 +347,12 @@ class ContactModel:
         self._fmag = np.zeros(n_prim)                 # the haptic port's held force per contact
         self._fmag_wall = np.zeros(n_prim)            # the law's force per contact (the wall, the tip)
         self._no_ahead = np.zeros(n_prim)
-        # output buffers
+        self._bind_contacts()
+        # the penalty law as the compliance kernels take it (rendering_kernels.penalty_law)
+        self._penalty = rendering_kernels.penalty_law(self._law, p.stiffness, p.damping, p.penalty_length)
+
+    def _init_output_buffers(self) -> None:
+        """The step's outputs, the tip's and the passivity observer's, and the broad phase's boxes."""
         self._node_force = np.zeros((self.n_tool, 3))
         self._tip_stiffness = np.zeros((3, 3))
         self._tip_gap = np.zeros(3)
@@ -361,10 +375,25 @@ class ContactModel:
         self.ccd_hits = 0               # diagnostics: contacts started by CCD
         self.local_refreshes = 0
 
+    def _bind_contacts(self) -> None:
+        """The contact state as the compliance kernels take it (rendering_kernels.contact_state): the
+        per-primitive arrays above, made again whenever they are replaced (a restored state)."""
+        self._contacts = rendering_kernels.contact_state(
+            self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
+            self._contact_s, self._contact_ahead, self._fmag, self._fmag_wall)
+
     # ------------------------------------------------------------------ pickling
+    def __getstate__(self) -> dict:
+        """The attributes but the contact state tuple, made again from them when restored (a
+        serialized state stores each reference to an array as an array of its own)."""
+        state = self.__dict__.copy()
+        del state["_contacts"]
+        return state
+
     def __setstate__(self, state) -> None:
         """Unpickled (or deep-copied): the kernels are loaded in this process before any step."""
         self.__dict__.update(state)
+        self._bind_contacts()
         _warm_up(self.params.interpolation)
 
     # ------------------------------------------------------------------ tissue frames
@@ -380,7 +409,7 @@ class ContactModel:
         frame; None: the model's own record (`compliance_force_lag`). Both None: no compliance
         for this frame (renders as hold). Ignored by the hold and extrapolate local models.
         """
-        if not (_is_real(t) and math.isfinite(t)):
+        if not is_finite_real(t):
             raise ContactInputError(f"t must be a finite time in s (got {t!r})")
         fix = "give surface node positions in m for all surface nodes, in the order of surface_triangles"
         pos = _float_array("tissue_positions", positions, self.n_surface, fix).copy()
@@ -558,9 +587,9 @@ class ContactModel:
         if self._frame_t is None:
             raise ContactInputError("no tissue frame yet: call set_tissue_frame(t, positions, velocities) "
                                     "before step()")
-        if not (_is_real(dt) and math.isfinite(dt) and dt > 0):
+        if not (is_finite_real(dt) and dt > 0):
             raise ContactInputError(f"dt must be a finite number > 0 (got {dt!r}): e.g. 0.001 s")
-        if not (_is_real(t) and math.isfinite(t)):
+        if not is_finite_real(t):
             raise ContactInputError(f"t must be a finite time in s (got {t!r})")
         tool1 = _float_array("tool_positions", tool_positions, self.n_tool,
                              "give the tool point positions in m")
@@ -579,8 +608,8 @@ class ContactModel:
             self._tool_vel_older[...] = tool_vel
         if self.params.detection == "discrete" and not self._tunnel_warned:
             # Discrete detection sees only where the tool is at each sample: a tool that moves
-            # farther than the margin in one step can pass through a thin wall unseen (measured by
-            # the extremes study: a probe at 10 m/s crossed the 1.5 mm AAA wall without a contact).
+            # farther than the margin in one step can pass through a thin wall unseen (in the
+            # extremes study a probe at 10 m/s crosses the 1.5 mm AAA wall without a contact).
             jump = max_displacement(tool1, tool0)
             if jump > self.params.margin:
                 self._tunnel_warned = True
@@ -653,11 +682,9 @@ class ContactModel:
             ahead.fill(0.0)
         if c is not None and c.active:
             rendering_kernels.compliance_response(
-                self._contact_face, self._contact_w, self._contact_n, self._contact_depth, self._contact_rate,
-                self._contact_s, self.local.triangles, self.local.vertices, self.n_tool, c.slot, c.W,
-                c.g, c.g_new, c.g_applied, c.u, self._law, p.stiffness, p.damping, p.penalty_length, dt, ahead,
-                self._no_ahead, COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, self._fmag, self._fmag_wall, c._act,
-                c._Wa, c._D, c._J, c._work, self._node_force, self._tissue_force, c.record[c.current], c.out)
+                self._contacts, self._no_ahead, self.local.triangles, self.local.vertices, self.n_tool, c.wall,
+                self._penalty, dt, COMPLIANCE_MAX_ITERATIONS, COMPLIANCE_TOLERANCE, c.work, self._node_force,
+                self._tissue_force, c.out)
             c.record_steps[c.current] += 1
             max_depth, count, energy, iterations, c.band = c.out.tolist()
             c.iterations = int(iterations)
@@ -729,9 +756,9 @@ class ContactModel:
         The observer's energy alone is no verdict: a sampled penalty wall always creates some
         energy (about K T / 2 v^2 per unit time) that the device's own damping is meant to take
         out, which the contact model does not know. A wall that has returned more than the largest
-        penalty energy it ever held is active whatever the device (measured by the extremes study:
-        0.375 J created against 0.09 J stored at 20 kN/m; 0.03 J against 0.06 J at a passive
-        800 N/m with b_dev = 1 N s/m).
+        penalty energy it ever held is active whatever the device (in the extremes study a 20 kN/m
+        wall creates 0.375 J against 0.09 J stored; a passive 800 N/m wall with b_dev = 1 N s/m
+        creates 0.03 J against 0.06 J stored).
 
         Each contact cycle is also judged on its own, relative to the energy it exchanged, in the
         passivity kernel (passivity.py: contact_cycles, active_cycles, last_cycle_energy, its own log
@@ -751,7 +778,7 @@ class ContactModel:
 
     # ------------------------------------------------------------------ state (FMU rollback)
     _STATELESS = ("tree", "triangles", "params", "n_surface", "n_tool", "radius", "n_segments", "_law",
-                  "_no_record", "_no_patch")
+                  "_penalty", "_no_record", "_no_patch", "_contacts")
 
     def get_state(self) -> dict:
         """A deep copy of everything that changes at run time (frames, local model, compliance,
@@ -761,6 +788,7 @@ class ContactModel:
     def set_state(self, state: dict) -> None:
         """Restore a get_state() snapshot; the AABB tree is refitted to the restored frame."""
         self.__dict__.update(copy.deepcopy(state))
+        self._bind_contacts()
         if self._frame_pos is not None:
             extrapolate = self.local.extrapolate
             end = self._frame_pos + self._frame_vel * self.params.frame_period if extrapolate else self._frame_pos

@@ -204,8 +204,8 @@ def check_compliance(compliance, nodes, n_surface, max_nodes):
     w = block
     if scale > 0.0:
         # Smallest eigenvalue >= -shift exactly when W + shift I has a Cholesky factor (up to its
-        # round-off): a few us in a kernel, where eigvalsh takes 97 us of each tissue frame's
-        # intake in the 1 kHz loop. eigvalsh decides, and measures, only where the factor fails.
+        # round-off): a few us in a kernel, where eigvalsh would take about 100 us of each tissue
+        # frame's intake in the 1 kHz loop. eigvalsh decides, and measures, only where the factor fails.
         shift = PSD_TOLERANCE * scale * w.shape[0]
         if not kernels.cholesky_succeeds(w, shift, np.empty_like(w)):
             lowest = float(np.linalg.eigvalsh(w)[0])
@@ -224,6 +224,12 @@ class WallCompliance:
     wall's displacement W (g - g_applied); slot (local vertex -> index in ids or -1).
     The record: the mean tissue force per frame interval (the last `lag + 1` intervals), used as
     g_applied when the tissue does not report it.
+
+    ``wall`` holds (slot, W, g, g_new, u, the current interval's record) as the response kernel takes
+    them (`rendering_kernels.patch_state`): made again whenever one of them changes, and left out of
+    the state (a serialized state stores each reference to an array as an array of its own), so
+    that it always holds the arrays the attributes name. ``work`` holds the solve's work arrays
+    (`rendering_kernels.solve_work`), made once.
     """
 
     def __init__(self, n_surface: int, n_primitives: int, max_nodes: int, lag: int):
@@ -248,22 +254,33 @@ class WallCompliance:
         self._key_id = np.zeros(self.max_nodes, np.int64)
         # Newton work arrays (sized for every primitive in contact at once)
         m = int(n_primitives)
-        self._act = np.zeros(m, np.int64)
-        self._Wa = np.zeros((m, 3 * self.max_nodes))
-        self._D = np.zeros((m, m))
-        self._J = np.zeros((m, m))
-        self._work = np.zeros((3, m))            # rhs, delta0, f of the solve
+        self.work = kernels.solve_work(np.zeros(m, np.int64), np.zeros((m, 3 * self.max_nodes)), np.zeros((m, m)),
+                                       np.zeros((m, m)), np.zeros((3, m)))
         self.out = np.zeros(5)                   # max depth, contact count, energy, iterations, largest |u|
         # record of the force sent to the tissue, per frame interval
         self.record = np.zeros((self.lag + 1, n_surface, 3))
         self.record_steps = np.zeros(self.lag + 1, np.int64)
         self.current = 0
+        self._bind_wall()
+
+    def _bind_wall(self) -> None:
+        self.wall = kernels.patch_state(self.slot, self.W, self.g, self.g_new, self.u, self.record[self.current])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        del state["wall"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._bind_wall()
 
     def close_interval(self) -> None:
         """A frame arrived: the current interval's record is complete; start the next one."""
         self.current = (self.current + 1) % (self.lag + 1)
         self.record[self.current] = 0.0
         self.record_steps[self.current] = 0
+        self._bind_wall()
 
     def recorded_force(self, ids) -> np.ndarray:
         """Mean tissue force at `ids` over the interval `lag` frames back, (p,3)."""
@@ -285,6 +302,7 @@ class WallCompliance:
         self.g_new = np.zeros(3 * p)
         self.u = np.zeros(3 * p)
         self.band = 0.0
+        self._bind_wall()
         if self.active:
             self.band = kernels.patch_displacement(self.W, self.g, self.g_applied, self.u)
 
@@ -295,4 +313,5 @@ class WallCompliance:
     def map_local(self, local_vertices) -> None:
         """slot of every local model vertex (its index in ids, -1 when it has no compliance)."""
         self.slot = np.empty(local_vertices.size, np.int64)
+        self._bind_wall()
         kernels.patch_slots(self.ids, local_vertices, self.slot)

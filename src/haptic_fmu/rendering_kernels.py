@@ -36,6 +36,58 @@ from .penalty_kernels import LAW_HUNT_CROSSLEY, contact_compliance, distribute, 
 #: Sweeps of the Gauss-Seidel fallback of the compliance solve (linear convergence; a few contacts).
 GAUSS_SEIDEL_SWEEPS = 500
 
+# The compliance kernels take what belongs together as one argument each: plain tuples in the
+# orders below, made by the functions after them, built once by the model and reused every step.
+# Plain tuples, because numba's dispatcher types a tuple of arrays about as fast as the arrays
+# passed one by one, where a NamedTuple is typed in Python, microseconds per call at 1 kHz.
+
+#: The contact state (``contact_state``, ContactModel's per-primitive arrays, nodes then segments):
+#: local face (int64, -1: no contact), barycentric weights (n_prim, 3), outward normal (n_prim, 3),
+#: depth, rate, segment parameter s, the depth change the tool's motion predicts over the hold,
+#: the haptic port's held force and the law's force at the sampled depths (the wall's).
+CONTACT_FACE, CONTACT_W, CONTACT_N, CONTACT_DEPTH, CONTACT_RATE, CONTACT_S, CONTACT_AHEAD, PORT_FORCE, \
+    WALL_FORCE = range(9)
+#: The penalty law (``penalty_law``): its kernel code, k, b and d0.
+PENALTY_LAW, PENALTY_K, PENALTY_B, PENALTY_D0 = range(4)
+#: The wall's compliance state the response updates (``patch_state``, WallCompliance): slot (local
+#: vertex -> patch slot or -1), W (3p, 3p), g (3p, the patch force of the last step), g_new (3p, this
+#: step's), u (3p, the wall's displacement W (g - g_applied)) and force_sum (n_surface, 3), the sum
+#: of the forces sent to the tissue over the current frame interval (its record).
+PATCH_SLOT, PATCH_W, PATCH_G, PATCH_G_NEW, PATCH_U, PATCH_FORCE_SUM = range(6)
+#: The compliance solve's work arrays (``solve_work``): act (n_prim,) int64, Wa (n_prim, >= 3p),
+#: D, J (n_prim, n_prim), and the rows rhs, delta0, f of one (3, n_prim) array.
+WORK_ACT, WORK_WA, WORK_D, WORK_J, WORK_VECTORS = range(5)
+
+
+def contact_state(face, w, n, depth, rate, s, ahead, port_force, wall_force) -> tuple:
+    """The contact state tuple (the order of CONTACT_FACE ... WALL_FORCE)."""
+    return _ordered(9, ((CONTACT_FACE, face), (CONTACT_W, w), (CONTACT_N, n), (CONTACT_DEPTH, depth),
+                        (CONTACT_RATE, rate), (CONTACT_S, s), (CONTACT_AHEAD, ahead), (PORT_FORCE, port_force),
+                        (WALL_FORCE, wall_force)))
+
+
+def penalty_law(law, k, b, d0) -> tuple:
+    """The penalty law tuple (the order of PENALTY_LAW ... PENALTY_D0)."""
+    return _ordered(4, ((PENALTY_LAW, law), (PENALTY_K, k), (PENALTY_B, b), (PENALTY_D0, d0)))
+
+
+def patch_state(slot, W, g, g_new, u, force_sum) -> tuple:
+    """The wall's compliance state tuple (the order of PATCH_SLOT ... PATCH_FORCE_SUM)."""
+    return _ordered(6, ((PATCH_SLOT, slot), (PATCH_W, W), (PATCH_G, g), (PATCH_G_NEW, g_new), (PATCH_U, u),
+                        (PATCH_FORCE_SUM, force_sum)))
+
+
+def solve_work(act, Wa, D, J, vectors) -> tuple:
+    """The compliance solve's work tuple (the order of WORK_ACT ... WORK_VECTORS)."""
+    return _ordered(5, ((WORK_ACT, act), (WORK_WA, Wa), (WORK_D, D), (WORK_J, J), (WORK_VECTORS, vectors)))
+
+
+def _ordered(size, entries) -> tuple:
+    items = [None] * size
+    for index, value in entries:
+        items[index] = value
+    return tuple(items)
+
 
 @njit(cache=True)
 def local_positions(frame_pos, frame_vel, tau, extrapolate, out):
@@ -201,20 +253,31 @@ def _gauss_seidel(m, act, delta0, D, contact_depth, contact_rate, contact_ahead,
 
 
 @njit(cache=True)
-def compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g_prev,
-                      contact_ahead, law, k, b, d0, dt, max_iter, tol, fmag, g_out, act, Wa, D, J, rhs, delta0, f):
+def compliance_forces(contacts, contact_ahead, fmag, tri, slot, W, g_prev, penalty, dt, max_iter, tol, g_out, work):
     """Contact forces against the yielding wall (see the module docstring).
 
-    Inputs: the narrow phase's contact data (contact_face, weights, normals, depth, rate; depth and
-    rate against the wall predicted with g_prev), contact_ahead (the depth change the tool's motion
-    predicts over the hold, `narrow_phase.approach`), tri (local faces), slot (local vertex -> patch
-    slot or -1), W (3p,3p), g_prev (3p). Outputs: fmag (per primitive: force magnitude along n),
-    contact_depth / contact_rate updated to the solved wall, contact_face set to -1 for contacts
-    the yielding wall has left, g_out (3p) the patch force of the solution. Work arrays: act
-    (n_prim,) int64, Wa (n_prim, >= 3p), D, J (n_prim, n_prim), rhs, delta0, f (n_prim,).
-    Returns the Newton iterations used (-1 when max_iter did not reach tol: the last iterate is
-    kept).
+    Inputs: the narrow phase's contact data in ``contacts`` (its face, weights, normals, depth and
+    rate; depth and rate against the wall predicted with g_prev), contact_ahead (the depth change
+    the law's hold takes, `narrow_phase.approach`; zeros for the wall's force), tri (local faces),
+    slot (local vertex -> patch slot or -1), W (3p,3p), g_prev (3p), ``penalty`` (the law).
+    Outputs: fmag (per primitive: force magnitude along n), the contacts' depth and rate updated
+    to the solved wall, their face set to -1 for contacts the yielding wall has left, g_out (3p)
+    the patch force of the solution. ``work``: `solve_work`. Returns the Newton iterations used
+    (-1 when max_iter did not reach tol: the last iterate is kept).
     """
+    vectors = work[WORK_VECTORS]
+    return _compliance_forces(contacts[CONTACT_FACE], contacts[CONTACT_W], contacts[CONTACT_N],
+                              contacts[CONTACT_DEPTH], contacts[CONTACT_RATE], tri, slot, W, g_prev, contact_ahead,
+                              penalty[PENALTY_LAW], penalty[PENALTY_K], penalty[PENALTY_B], penalty[PENALTY_D0], dt,
+                              max_iter, tol, fmag, g_out, work[WORK_ACT], work[WORK_WA], work[WORK_D], work[WORK_J],
+                              vectors[0], vectors[1], vectors[2])
+
+
+@njit(cache=True)
+def _compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g_prev,
+                       contact_ahead, law, k, b, d0, dt, max_iter, tol, fmag, g_out, act, Wa, D, J, rhs, delta0, f):
+    """`compliance_forces` on its arrays one by one (what the kernels above it call: each array
+    taken out of its tuple once)."""
     n3 = W.shape[0]
     m = 0
     for i in range(contact_face.shape[0]):
@@ -408,14 +471,23 @@ def name_patch(pos, vertices, tri, contact_face, contact_point, tool, near_dist,
 
 
 @njit(cache=True)
-def port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_ahead, tri, slot, W, law, k,
-                b, d0, dt, fmag):
-    """The haptic port's held force of each contact against the yielding wall (fmag): the law's mean
-    over the depths the tool's predicted motion reaches from the solved depth, that motion shared
-    with the wall as by two springs in series: the wall gives way by w = a^T W a per newton (the
-    contact's own compliance), so the depth changes by ahead / (1 + s w) (s the law's slope). For a
-    lone contact of the linear law, k (d + ahead / 2) / (1 + k w): the mean of the series spring
-    over the tool's motion, which is what makes a tap on the yielding wall return what it took."""
+def port_forces(contacts, tri, slot, W, penalty, dt):
+    """The haptic port's held force of each contact against the yielding wall (the contacts' port
+    force): the law's mean over the depths the tool's predicted motion (their ahead) reaches from
+    the solved depth, that motion shared with the wall as by two springs in series: the wall gives
+    way by w = a^T W a per newton (the contact's own compliance), so the depth changes by
+    ahead / (1 + s w) (s the law's slope). For a lone contact of the linear law,
+    k (d + ahead / 2) / (1 + k w): the mean of the series spring over the tool's motion, which is
+    what makes a tap on the yielding wall return what it took."""
+    _port_forces(contacts[CONTACT_FACE], contacts[CONTACT_W], contacts[CONTACT_N], contacts[CONTACT_DEPTH],
+                 contacts[CONTACT_RATE], contacts[CONTACT_AHEAD], tri, slot, W, penalty[PENALTY_LAW],
+                 penalty[PENALTY_K], penalty[PENALTY_B], penalty[PENALTY_D0], dt, contacts[PORT_FORCE])
+
+
+@njit(cache=True)
+def _port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_ahead, tri, slot, W, law, k,
+                 b, d0, dt, fmag):
+    """`port_forces` on its arrays one by one."""
     for i in range(contact_face.shape[0]):
         fmag[i] = 0.0
         f = contact_face[i]
@@ -433,26 +505,41 @@ def port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate,
 
 
 @njit(cache=True)
-def compliance_response(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_s, tri,
-                        local_to_global, n_tool, slot, W, g, g_new, g_applied, u, law, k, b, d0, dt,
-                        contact_ahead, no_ahead, max_iter, tol, fmag, fmag_wall, work_i, Wa, D, J, work_f,
-                        node_force, tissue_force, force_sum, out):
+def compliance_response(contacts, no_ahead, tri, local_to_global, n_tool, patch, penalty, dt, max_iter, tol, work,
+                        node_force, tissue_force, out):
     """The compliance model's response in one call (the 1 kHz path): `compliance_forces` (the wall
-    yields under the law's force, fmag_wall; no_ahead: zeros), the haptic port's force held over the
-    predicted depths against the solved wall (fmag, `port_forces`), `penalty_kernels.distribute`,
-    then the patch's new load g and displacement
+    yields under the law's force, the contacts' wall force; no_ahead: zeros), the haptic port's
+    force held over the predicted depths against the solved wall (their port force,
+    `port_forces`), `penalty_kernels.distribute`, then the patch's new load g and displacement
     u = W (g - g_applied) (updated by the changed columns of g only: u is W (g - g_applied) to
-    round-off).
-    work_i (n_prim,) int64, work_f (3, n_prim): the solve's work arrays. out (5,) receives
+    round-off). ``patch``: `patch_state`; ``work``: `solve_work`. out (5,) receives
     (max depth, contact count, penalty energy, Newton iterations or -1, largest |u|)."""
-    iterations = compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
-                                   no_ahead, law, k, b, d0, dt, max_iter, tol, fmag_wall, g_new, work_i, Wa, D, J,
-                                   work_f[0], work_f[1], work_f[2])
-    port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, contact_ahead, tri, slot, W, law, k,
-                b, d0, dt, fmag)
-    max_depth, count, energy = distribute(fmag, fmag_wall, contact_face, contact_w, contact_n, contact_s,
+    contact_face = contacts[CONTACT_FACE]
+    contact_w = contacts[CONTACT_W]
+    contact_n = contacts[CONTACT_N]
+    contact_depth = contacts[CONTACT_DEPTH]
+    contact_rate = contacts[CONTACT_RATE]
+    fmag = contacts[PORT_FORCE]
+    fmag_wall = contacts[WALL_FORCE]
+    slot = patch[PATCH_SLOT]
+    W = patch[PATCH_W]
+    g = patch[PATCH_G]
+    u = patch[PATCH_U]
+    law = penalty[PENALTY_LAW]
+    k = penalty[PENALTY_K]
+    b = penalty[PENALTY_B]
+    d0 = penalty[PENALTY_D0]
+    vectors = work[WORK_VECTORS]
+    iterations = _compliance_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, tri, slot, W, g,
+                                    no_ahead, law, k, b, d0, dt, max_iter, tol, fmag_wall, patch[PATCH_G_NEW],
+                                    work[WORK_ACT], work[WORK_WA], work[WORK_D], work[WORK_J], vectors[0], vectors[1],
+                                    vectors[2])
+    _port_forces(contact_face, contact_w, contact_n, contact_depth, contact_rate, contacts[CONTACT_AHEAD], tri, slot,
+                 W, law, k, b, d0, dt, fmag)
+    max_depth, count, energy = distribute(fmag, fmag_wall, contact_face, contact_w, contact_n, contacts[CONTACT_S],
                                           contact_depth, tri, local_to_global, n_tool, law, k, d0, node_force,
-                                          tissue_force, force_sum)
+                                          tissue_force, patch[PATCH_FORCE_SUM])
+    g_new = patch[PATCH_G_NEW]
     # u = W (g - g_applied), updated by the columns whose load changed (at most 9 per contact:
     # the contact faces' vertices; none while nothing touches the patch)
     n3 = g.shape[0]

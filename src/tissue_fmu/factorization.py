@@ -22,7 +22,7 @@ application of it (accepted on the true residual; see ``BackwardEuler``):
   ``refactor_budget`` (about the cost of one factorisation in solves: ski rental).  The choice
   depends only on iteration counts, never on timing, so runs are deterministic.
 
-Hyperelastic (no assembled tangent): the rest factorisation, as before.  Measured choices are in
+Hyperelastic (no assembled tangent): the rest factorisation only.  The choices are compared in
 ``benchmarks/bench_tissue_step.py``.  Fixed dofs are filtered out (the factors cover the free
 dofs only), so the preconditioner returns 0 there.
 
@@ -30,11 +30,10 @@ State: the SuperLU/CHOLMOD factors cannot be pickled; :meth:`__getstate__` drops
 :meth:`__setstate__` refactorises the same matrices (the rest matrix from ``h``, the tangent
 from its stored values), which reproduces the factors bit for bit.
 
-Measured (benchmarks/bench_tissue_step.py, this 2-core machine, shared): default wall, ETMM,
-5 N: former step 148 ms median (16 GMRES iterations on the rest factor), now 28 ms median, 66 ms
-mean (transient refactorisations of ~220 ms); 64x80x2 wall, ETMM, 0.5 N: 210 -> 34 ms (Woodbury,
-one solve) with cholespy's CHOLMOD; 26-31 ms with the system's (33-38 ms with cholespy's in the
-same runs); the factor solve is most of every step at 10k+ nodes.
+Why a maintained factorisation: on the rest factor alone a stiffened wall needs a dozen or more
+GMRES iterations per step; kept exact, a step is one solve.  At 10k+ nodes the factor solve is
+most of every step, which is why the fastest CHOLMOD installed is taken (docs/performance.md
+has the figures).
 """
 
 from __future__ import annotations
@@ -55,7 +54,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["BACKENDS", "TangentFactorization", "backend_available", "default_backend", "sparse_lu"]
 
 #: Woodbury (low-rank) correction up to this many free dofs on the super-threshold elements'
-#: nodes; above it the tangent is assembled and factorised.  Measured (bench_tissue_step.py).
+#: nodes; above it the tangent is assembled and factorised (compared in bench_tissue_step.py).
 MAX_LOWRANK_DOFS = 600
 #: ... and while a step needs at most this many new columns of A_0^-1 (one multi-right-hand-side
 #: solve; more cost about as much as factorising the tangent, which then serves the next steps).
@@ -90,9 +89,9 @@ class _SuiteSparseFactor:
     """CHOLMOD (supernodal) of the system's SuiteSparse through scikit-sparse, over the system's
     BLAS (OpenBLAS where installed), of an SPD matrix given as CSR arrays; ``solve`` like SuperLU's.
 
-    Measured (bench_tissue_step.py, one thread) against cholespy's CHOLMOD over the reference BLAS:
-    the factorisation 5-7x faster, single-vector solves 1.3-1.4x faster (on the 10k+ node walls a
-    solve is bound by reading the factor)."""
+    Preferred to cholespy's CHOLMOD over the reference BLAS: its factorisations and its
+    single-vector solves are faster (on the 10k+ node walls a solve is bound by reading the
+    factor; bench_tissue_step.py compares them)."""
 
     def __init__(self, indptr, indices, data):
         cholmod, self._one_blas_thread = _load_system_cholmod()
@@ -121,15 +120,14 @@ def _load_system_cholmod():
 
     One BLAS thread for every CHOLMOD call, restored afterwards: the factor and its solves then
     have the same bits in every process, whatever its CPU count or its importer's settings (two
-    OpenBLAS threads round differently: measured), and an importer that uses the same OpenBLAS
-    keeps its own thread count. Two threads were at most 1.1x faster here, and the 1 kHz loop has
-    the other CPU.
+    OpenBLAS threads round differently), and an importer that uses the same OpenBLAS keeps its own
+    thread count. A second thread gains little, and the 1 kHz loop has the other CPU.
 
     OpenMP: CHOLMOD 3 (SuiteSparse 5) runs parts of a factorisation on 4 threads whatever
-    ``OMP_NUM_THREADS`` says (the same bits with one: measured). Only ``OMP_THREAD_LIMIT`` caps
-    them, read once when libgomp loads and process-wide: this module does not set it, since it runs
-    inside other people's FMU importers too; the orchestrator sets it in its own processes
-    (``orchestration.native_threads``), where one thread factorises 1.4-1.8x faster."""
+    ``OMP_NUM_THREADS`` says (with the same bits as one). Only ``OMP_THREAD_LIMIT`` caps them, read
+    once when libgomp loads and process-wide: this module does not set it, since it runs inside
+    other people's FMU importers too; the orchestrator sets it in its own processes
+    (``orchestration.native_threads``), where one thread factorises faster."""
     global _system_cholmod
     if _system_cholmod is None:
         from sksparse import cholmod
@@ -174,8 +172,8 @@ def default_backend() -> str:
 
 def sparse_lu(matrix_csc):
     """SuperLU of a structurally symmetric, diagonally dominant-ish matrix: symmetric fill-reducing
-    ordering and no pivoting (measured on the default AAA: 1.5x fewer nonzeros and 2x faster
-    solves than scipy's default COLAMD with partial pivoting)."""
+    ordering and no pivoting (fewer nonzeros and faster solves than scipy's default COLAMD with
+    partial pivoting on these matrices)."""
     from scipy.sparse.linalg import splu
 
     return splu(matrix_csc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -227,6 +225,44 @@ class _ColumnCache:
         return np.asarray(dofs, dtype=np.int64), np.asarray(rows, dtype=np.int64)
 
 
+def _chosen_backend(backend: str) -> str:
+    """The backend ``backend`` names ('auto': the fastest installed); ValueError when it is unknown
+    or not installed here."""
+    if backend != "auto" and backend not in BACKENDS:
+        raise ValueError(f"backend must be 'auto' or one of {', '.join(BACKENDS)} (got {backend!r})")
+    if backend == "auto":
+        return default_backend()
+    if not backend_available(backend):
+        raise ValueError(f"backend {backend!r} needs {BACKENDS[backend].package}, which is not installed here "
+                         "(see the README's install; backend='auto' takes the fastest one installed)")
+    return backend
+
+
+def _element_block_offsets(indptr: np.ndarray, indices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m, 4, 4) element block offsets in the full pattern: the position of (3 t_j, 3 t_k) minus
+    indptr[3 t_j]."""
+    row0 = 3 * tets[:, :, None]
+    col0 = 3 * tets[:, None, :]
+    starts = indptr[row0]
+    lengths = indptr[row0 + 1] - starts
+    offsets = np.empty(tets.shape[:1] + (4, 4), dtype=np.int64)
+    for j in range(4):  # searchsorted per row segment, vectorised over elements and k
+        for k in range(4):
+            s, ln, c = starts[:, j, 0], lengths[:, j, 0], col0[:, 0, k]
+            lo = s.copy()
+            hi = s + ln
+            while True:  # vectorised binary search of column c in indices[lo:hi]
+                active = lo < hi
+                if not active.any():
+                    break
+                mid = (lo + hi) // 2
+                go_right = active & (indices[np.minimum(mid, indices.size - 1)] < c)
+                lo = np.where(go_right, mid + 1, lo)
+                hi = np.where(active & ~go_right, mid, hi)
+            offsets[:, j, k] = lo - s
+    return offsets
+
+
 class TangentFactorization:
     """Preconditioner ``z ~ (M + h C + h^2 K_t)^-1 r``, exact except for a large non-linear set
     (module docstring).  ``update(h)`` after the force field's ``add_forces``; ``__call__(r, out)``;
@@ -240,18 +276,11 @@ class TangentFactorization:
                  refactor_budget: int = REFACTOR_BUDGET, backend: str = "auto"):
         ff = self.force_field = force_field
         n = ff.n_nodes
-        if backend != "auto" and backend not in BACKENDS:
-            raise ValueError(f"backend must be 'auto' or one of {', '.join(BACKENDS)} (got {backend!r})")
-        if backend == "auto":
-            backend = default_backend()
-        elif not backend_available(backend):
-            raise ValueError(f"backend {backend!r} needs {BACKENDS[backend].package}, which is not installed here "
-                             "(see the README's install; backend='auto' takes the fastest one installed)")
         #: the rest (SPD) matrix's factorisation: CHOLMOD (the system's through scikit-sparse, else
-        #: cholespy's; measured 1.1-1.8x faster solves than SuperLU here), else SuperLU; the tangent
+        #: cholespy's; faster solves than SuperLU on these matrices), else SuperLU; the tangent
         #: is always SuperLU (it is not symmetric).
-        self.backend = backend
-        self._factor_class = BACKENDS[backend].factor
+        self.backend = _chosen_backend(backend)
+        self._factor_class = BACKENDS[self.backend].factor
         self.max_lowrank_dofs = int(max_lowrank_dofs)
         self.max_new_lowrank_dofs = int(max_new_lowrank_dofs)
         self.refactor_iterations = int(refactor_iterations)
@@ -261,7 +290,16 @@ class TangentFactorization:
         dof_free = np.repeat(~fixed, 3)
         self._free_dofs = np.flatnonzero(dof_free)
         nf = self._free_dofs.size
-        # Full-size (3n) patterns: K0 and C share the tets, so they share the edge pattern.
+        rows = self._set_pattern(ff, masses, n)
+        self._set_free_block(dof_free, rows, n, nf)
+        self._offsets = _element_block_offsets(self._indptr, self._indices, ff.active_tets)
+        self._n = n
+        self._set_initial_state(nf)
+
+    def _set_pattern(self, ff, masses: np.ndarray, n: int) -> np.ndarray:
+        """The full-size (3n) pattern of K0 and C, their data, the diagonal's positions and the
+        dofs' masses; returns the row of every pattern entry."""
+        # K0 and C share the tets, so they share the edge pattern.
         k0 = tensors_to_csr(ff.stiffness)
         damping = ff.damping_tensors()
         c0 = None if damping is None else tensors_to_csr(damping)
@@ -280,7 +318,10 @@ class TangentFactorization:
             raise ValueError("stiffness pattern lacks a diagonal entry")  # cannot happen: every node has K_ii
         self._diag_pos = diag
         self._mass_dofs = np.repeat(np.where(masses > 0.0, masses, 1.0), 3)
-        # The free-free block: entry selection and its CSR structure in free numbering.
+        return rows
+
+    def _set_free_block(self, dof_free: np.ndarray, rows: np.ndarray, n: int, nf: int) -> None:
+        """The free-free block: entry selection and its CSR structure in free numbering."""
         keep = dof_free[rows] & dof_free[self._indices]
         self._keep = np.flatnonzero(keep)
         free_index = np.full(3 * n, -1, dtype=np.int64)
@@ -290,30 +331,9 @@ class TangentFactorization:
         self._f_indptr = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(free_index[rows[self._keep]], minlength=nf), out=self._f_indptr[1:])
         self._f_indptr = self._f_indptr.astype(np.int32)
-        # Element block offsets in the full pattern: position of (3 t_j, 3 t_k) minus indptr[3 t_j].
-        tets = ff.active_tets
-        row0 = 3 * tets[:, :, None]
-        col0 = 3 * tets[:, None, :]
-        starts = self._indptr[row0]
-        lengths = self._indptr[row0 + 1] - starts
-        offsets = np.empty(tets.shape[:1] + (4, 4), dtype=np.int64)
-        for j in range(4):  # searchsorted per row segment, vectorised over elements and k
-            for k in range(4):
-                s, ln, c = starts[:, j, 0], lengths[:, j, 0], col0[:, 0, k]
-                lo = s.copy()
-                hi = s + ln
-                while True:  # vectorised binary search of column c in indices[lo:hi]
-                    active = lo < hi
-                    if not active.any():
-                        break
-                    mid = (lo + hi) // 2
-                    go_right = active & (self._indices[np.minimum(mid, self._indices.size - 1)] < c)
-                    lo = np.where(go_right, mid + 1, lo)
-                    hi = np.where(active & ~go_right, mid, hi)
-                offsets[:, j, k] = lo - s
-        self._offsets = offsets
-        self._n = n
-        # State
+
+    def _set_initial_state(self, nf: int) -> None:
+        """No step size, factor or Woodbury set yet."""
         self._h = None
         self._rest_data = None      # full-pattern data of M + h C + h^2 K0
         self._lu_rest = None

@@ -24,8 +24,10 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import scipy.sparse as sp
 
 from . import kernels
+from ._checks import is_finite_real
 from .errors import ForceFieldError, MaterialError
 from .laws import make_law
 from .materials import (
@@ -34,9 +36,9 @@ from .materials import (
     lame_parameters,
     viscous_lame_parameters,
 )
+from .mesh import validate_mesh
 from .precompute import (
     TensorMassTensors,
-    assemble_stiffness,
     lumped_masses,
     shape_gradients,
     tensor_mass_tensors,
@@ -45,7 +47,7 @@ from .precompute import (
 
 logger = logging.getLogger(__name__)
 
-# lame_parameters and assemble_stiffness are re-exported here (agreed interface).
+# lame_parameters is re-exported here (agreed interface).
 __all__ = ["ForceFieldError", "TensorMassForceField", "lame_parameters", "assemble_stiffness"]
 
 # Explicit-step stiffening margin for non-linear laws: the time step stays a bound while every
@@ -62,10 +64,6 @@ def _check_node_array(name: str, x, n: int) -> np.ndarray:
             "one row per node, node-major"
         )
     return x
-
-
-def _finite_scalar(x) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and bool(np.isfinite(x))
 
 
 def _element_mask(name: str, value, m: int) -> np.ndarray:
@@ -86,28 +84,43 @@ def _element_mask(name: str, value, m: int) -> np.ndarray:
     return mask
 
 
+def assemble_stiffness(points, tets, young_modulus, poisson_ratio) -> sp.csr_matrix:
+    """Global stiffness K (3n x 3n CSR, node-major dofs, f = -K u) from the tensor-mass tensors.
+
+    young_modulus, poisson_ratio: scalars or per-element (m,) arrays (validated).  The tets may
+    list their vertices in any order (either orientation gives the same K); shapes, node ids,
+    degenerate (flat) and non-manifold tets are refused with a MeshError naming them.
+    """
+    validate_mesh(points, tets, allow_inverted=True)
+    points = np.asarray(points, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    m = tets.shape[0]
+    e = element_array("young_modulus", young_modulus, m, "1.044e6 (Pa)")
+    nu = element_array("poisson_ratio", poisson_ratio, m, "0.45")
+    lam, mu = lame_parameters(e, nu)
+    return tensors_to_csr(tensor_mass_tensors(points, tets, lam, mu))
+
+
 class TensorMassForceField:
     """Elastic + viscous internal forces of a linear-tet mesh (see module docstring)."""
 
     def __init__(self, points, tets, young_modulus, poisson_ratio, *, law="linear", viscosity=0.0,
                  rv_alpha=0.174e6, rv_beta=1.881e6, nonlinear_strain_threshold=0.05,
                  nonlinear_elements=None, active_elements=None):
-        from .mesh import validate_mesh  # agreed interface of the mesh module
-
         validate_mesh(points, tets)
         points = np.ascontiguousarray(points, dtype=np.float64)
         tets = np.ascontiguousarray(tets, dtype=np.int64)
         n, m = points.shape[0], tets.shape[0]
         if law not in LAWS:
             raise ForceFieldError(f"law must be one of {LAWS} (got {law!r})")
-        if not _finite_scalar(rv_alpha) or rv_alpha <= 0.0:
+        if not is_finite_real(rv_alpha) or rv_alpha <= 0.0:
             raise MaterialError(f"rv_alpha must be a finite number > 0 (got {rv_alpha!r}): the Raghavan-Vorp "
                                 "alpha in Pa, e.g. 0.174e6")
-        if not _finite_scalar(rv_beta) or rv_beta < 0.0:
+        if not is_finite_real(rv_beta) or rv_beta < 0.0:
             raise MaterialError(f"rv_beta must be a finite number >= 0 (got {rv_beta!r}): the Raghavan-Vorp "
                                 "beta in Pa, e.g. 1.881e6 (0 gives a neo-Hookean-like law)")
         t = nonlinear_strain_threshold
-        if not _finite_scalar(t) or t < 0.0:
+        if not is_finite_real(t) or t < 0.0:
             raise MaterialError(
                 f"nonlinear_strain_threshold must be a finite number >= 0 (got {t!r}): a principal Green "
                 "strain, e.g. 0.05 (0 corrects every element)"

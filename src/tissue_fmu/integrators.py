@@ -32,31 +32,24 @@ import numpy as np
 
 from .errors import StabilityError, TissueError
 from .forcefield import TensorMassForceField
-from .solvers import (  # noqa: F401  (re-exported: the Krylov solvers used to live here)
+from .solvers import (
     BiCGStabWorkspace,
     CGWorkspace,
     GMRESWorkspace,
+    masked_dot,
     preconditioned_bicgstab,
     preconditioned_cg,
     preconditioned_gmres,
+    true_residual,
 )
-from .solvers import _masked_dot, _true_residual
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "TissueError",
-    "StabilityError",
     "ForceField",
     "StepStatistics",
-    "CGWorkspace",
     "JacobiPreconditioner",
     "FactorizedPreconditioner",
-    "preconditioned_cg",
-    "BiCGStabWorkspace",
-    "preconditioned_bicgstab",
-    "GMRESWorkspace",
-    "preconditioned_gmres",
     "SymplecticEuler",
     "BackwardEuler",
 ]
@@ -124,8 +117,8 @@ class FactorizedPreconditioner:
     ``K_0`` is the assembled rest (linear) stiffness and ``C`` the damping matrix, both 3n x 3n
     scipy sparse.  For the linear law (and ETMM below its strain threshold) this is the exact
     system matrix and CG converges in one iteration; for non-linear laws it misses the
-    stiffening of deformed elements (measured on the default AAA under 5 N, half the elements
-    corrected: 10-13 GMRES iterations for 1e-6).  The factorisation is redone only when ``h``
+    stiffening of deformed elements (on the default AAA under 5 N, half the elements corrected,
+    GMRES needs about a dozen iterations for 1e-6).  The factorisation is redone only when ``h``
     changes (a fixed communication step factors once).  Factors the free-dof block only, so
     fixed dofs get z = 0.
     """
@@ -165,8 +158,8 @@ class FactorizedPreconditioner:
             system = system + h * self._damping
         system = system.tocsc()
         # M + h C + h^2 K is symmetric positive definite: a symmetric fill-reducing ordering and
-        # no pivoting (measured on the default AAA: 1.5x fewer nonzeros and 2x faster solves
-        # than scipy's default COLAMD with partial pivoting).
+        # no pivoting (fewer nonzeros and faster solves than scipy's default COLAMD with partial
+        # pivoting on these matrices).
         self._lu = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                         options={"SymmetricMode": True})
         self._h = h
@@ -290,8 +283,8 @@ class BackwardEuler:
     :func:`preconditioned_bicgstab` (``nonsymmetric_solver``).  Why: with
     the secant the quasi-static limit of the step is the fixed-point iteration
     ``u <- K_s(u)^-1 f_ext``, which diverges into a limit cycle once the material stiffens
-    faster than ``K_c > 2 K_s`` (measured: a cantilever under 20 N kept oscillating with a
-    force residual of 200 %); the consistent tangent makes it a Newton step and it converges.
+    faster than ``K_c > 2 K_s`` (a cantilever under 20 N keeps oscillating with a force residual
+    of 200 %); the consistent tangent makes it a Newton step and it converges.
 
     Non-convergence within ``max_iterations`` is logged and reported in the statistics; a NaN
     raises TissueError.
@@ -326,7 +319,7 @@ class BackwardEuler:
         self._dv_prev = np.zeros((n, 3))
         self._direct_r = np.zeros((n, 3))
         # Initial guess of each solve: the last solution extrapolated linearly from the one before
-        # (measured on the default AAA under 5 N: steady steps need 1 GMRES iteration instead of 2).
+        # (on the default AAA under 5 N steady steps then need 1 GMRES iteration, not 2).
         self.extrapolate = True
         self._b = np.zeros((n, 3))
         self._tmp = np.zeros((n, 3))
@@ -366,11 +359,11 @@ class BackwardEuler:
         true residual (one iteration's worth, without the Krylov bookkeeping: two system products
         fewer than a 1-iteration CG/GMRES); None lets the Krylov solver continue from dv."""
         free = self.free
-        b_norm = math.sqrt(_masked_dot(b, b, free))
+        b_norm = math.sqrt(masked_dot(b, b, free))
         self.preconditioner(b, self.dv)
         if b_norm == 0.0:
             return 0, 0.0, True
-        r_norm = _true_residual(self._apply_system, b, self.dv, free, self._direct_r, self._tmp)
+        r_norm = true_residual(self._apply_system, b, self.dv, free, self._direct_r, self._tmp)
         if r_norm <= self.tolerance * b_norm:
             return 1, r_norm / b_norm, True
         return None
@@ -379,14 +372,34 @@ class BackwardEuler:
         """Advance ``u``, ``v`` in place by one backward-Euler step of size ``dt``."""
         h = float(dt)
         self._h = h
+        v *= self.free
+        nonsymmetric = self._right_hand_side(u, v, f_ext, h)
+        self.preconditioner.update(h)
+        if self.extrapolate:
+            # initial guess: linear extrapolation of the last two solutions
+            tmp = self._tmp
+            np.subtract(self.dv, self._dv_prev, out=tmp)
+            np.copyto(self._dv_prev, self.dv)
+            self.dv += tmp
+        iterations, residual, converged = self._solve(self._b, nonsymmetric, u.shape[0])
+        record = getattr(self.preconditioner, "record_iterations", None)
+        if record is not None:
+            record(iterations)
+        self._check_solution(iterations, residual, converged, dt)
+        v += self.dv
+        np.multiply(v, h, out=self._tmp)
+        u += self._tmp
+        return StepStatistics(substeps=1, iterations=iterations, relative_residual=residual, converged=converged)
+
+    def _right_hand_side(self, u: np.ndarray, v: np.ndarray, f_ext: np.ndarray, h: float) -> bool:
+        """``self._b`` = h (f(u, v) + f_ext - h K_t v), and the tangent the solve takes; returns
+        whether it is the non-symmetric (consistent) one."""
         ff = self.force_field
         b, tmp = self._b, self._tmp
-        v *= self.free
-
-        # add_forces first: it sets the state the tangent is taken at.  Right-hand side
-        # h (f(u, v) + f_ext - h K_t v); with K_t = K_0 + correction, -h K_0 v is folded into the
-        # force's rest-stiffness pass (one product over the rest tensors fewer per step).
-        # Only for the tensor-mass force field itself (a wrapper may replace its tangent_matvec).
+        # add_forces first: it sets the state the tangent is taken at.  With K_t = K_0 + correction,
+        # -h K_0 v is folded into the force's rest-stiffness pass (one product over the rest tensors
+        # fewer per step).  Only for the tensor-mass force field itself (a wrapper may replace its
+        # tangent_matvec).
         fused = isinstance(ff, TensorMassForceField) and ff.splits_rest_stiffness
         np.copyto(b, f_ext)
         if fused:
@@ -403,20 +416,17 @@ class BackwardEuler:
             tmp *= h
             b -= tmp
         b *= h
+        return nonsymmetric
 
-        self.preconditioner.update(h)
-        if self.extrapolate:
-            # initial guess: linear extrapolation of the last two solutions
-            np.subtract(self.dv, self._dv_prev, out=tmp)
-            np.copyto(self._dv_prev, self.dv)
-            self.dv += tmp
+    def _solve(self, b: np.ndarray, nonsymmetric: bool, n: int) -> tuple[int, float, bool]:
+        """``self.dv`` from its warm start: one application of an exact preconditioner, else the
+        Krylov solver of the tangent; returns (iterations, relative residual, converged)."""
         direct = self._direct_solve(b) if getattr(self.preconditioner, "exact", False) else None
         if direct is not None:
             # labelled with the Krylov method it stands for (its first iteration, exact here)
             self.last_solver = self.nonsymmetric_solver if nonsymmetric else "cg"
-            iterations, residual, converged = direct
-        elif nonsymmetric:
-            n = u.shape[0]
+            return direct
+        if nonsymmetric:
             if self.nonsymmetric_solver == "gmres":
                 if self._nonsymmetric_work is None:
                     self._nonsymmetric_work = GMRESWorkspace(n)
@@ -426,19 +436,18 @@ class BackwardEuler:
                     self._nonsymmetric_work = BiCGStabWorkspace(n)
                 solve = preconditioned_bicgstab
             self.last_solver = self.nonsymmetric_solver
-            iterations, residual, converged = solve(
+            return solve(
                 self._apply_system, b, self.dv, self.preconditioner, self.free,
                 self.tolerance, self.max_iterations, self._nonsymmetric_work,
             )
-        else:
-            self.last_solver = "cg"
-            iterations, residual, converged = preconditioned_cg(
-                self._apply_system, b, self.dv, self.preconditioner, self.free,
-                self.tolerance, self.max_iterations, self._cg_work,
-            )
-        record = getattr(self.preconditioner, "record_iterations", None)
-        if record is not None:
-            record(iterations)
+        self.last_solver = "cg"
+        return preconditioned_cg(
+            self._apply_system, b, self.dv, self.preconditioner, self.free,
+            self.tolerance, self.max_iterations, self._cg_work,
+        )
+
+    def _check_solution(self, iterations: int, residual: float, converged: bool, dt: float) -> None:
+        """A NaN or infinity raises TissueError (u and v untouched); an inexact solve is logged."""
         if not (math.isfinite(residual) and np.isfinite(self.dv).all()):
             # Leave u and v untouched and the warm start usable for a retry.
             self.dv.fill(0.0)
@@ -452,7 +461,3 @@ class BackwardEuler:
                 "raise cg_max_iterations or cg_tolerance",
                 self.last_solver, self.tolerance, iterations, residual,
             )
-        v += self.dv
-        np.multiply(v, h, out=tmp)
-        u += tmp
-        return StepStatistics(substeps=1, iterations=iterations, relative_residual=residual, converged=converged)

@@ -529,8 +529,9 @@ def etmm_consistent_tangent(tets, grads, volumes, lam, mu, candidates, u, du, th
     """out += d/d(eps) [phi(u + eps du) K_T (u + eps du)] at eps = 0 summed over candidates
     (the exact derivative of the correction, including the change of phi; not symmetric).
 
-    The original all-candidate form (strain, phi and its gradient recomputed per product), kept as
-    the reference of etmm_tangent_data + etmm_nonlinear_tangent_matvec, which the step uses."""
+    The all-candidate form (strain, phi and its gradient recomputed per product): the reference
+    that etmm_tangent_data + etmm_nonlinear_tangent_matvec, which the step uses, are checked
+    against."""
     h = np.empty((3, 3))
     dh = np.empty((3, 3))
     g = np.empty((3, 3))
@@ -691,8 +692,8 @@ def etmm_secant_energy(tets, grads, volumes, lam, mu, candidate, u, threshold, b
     """ETMM's secant energy 1/2 sum_T (1 + phi_T) u_T^T K_T u_T in one pass over the elements:
     the linear energy V (lam/2 tr(eps)^2 + mu eps:eps) of each, times 1 + phi for the candidates
     (``candidate[e]`` != 0), phi exactly as etmm_correction takes it at u: 1/2 u.K u plus the
-    correction's part in one gradient per element (53 us on the default wall, where the matvec and
-    the correction pass apart took 133 us)."""
+    correction's part in one gradient per element (one pass costs less than half of the matvec and
+    the correction pass apart)."""
     total = 0.0
     t2 = threshold * threshold
     for e in range(tets.shape[0]):

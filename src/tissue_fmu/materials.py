@@ -47,8 +47,8 @@ xi = det(dev E / p)/2 in [-1, 1]:
 These equal the largest / smallest principal Green strains whenever two principal strains
 coincide (xi = +-1: uniaxial tension or compression, equibiaxial), which includes the uniaxial
 stress state of the calibration; otherwise they lie between the middle and the extreme principal
-strain (at most 0.23 p inside, pure shear).  They need no eigen-solve (~6x cheaper than the
-acos/cos closed form, measured) and are smooth, which keeps the consistent tangent exact.
+strain (at most 0.23 p inside, pure shear).  They need no eigen-solve (several times cheaper than
+the acos/cos closed form) and are smooth, which keeps the consistent tangent exact.
 The tension branch uses l_t = sqrt(1 + 2 E_max*) (if E_max* > 0), the compression branch
 l_c = sqrt(1 + 2 E_min*) (if E_min* < 0); ``phi_b = r(l_b) - 1``.  They are blended by
 x = s_c / (s_t + s_c) (s_t = max(E_max*, 0), s_c = max(-E_min*, 0)): pure tension branch for

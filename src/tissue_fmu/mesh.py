@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._checks import as_float, is_integer
 from .errors import MeshError
 from .precompute import signed_volumes
 
@@ -55,8 +56,6 @@ _MAX_LISTED_IDS = 10
 # Small vectorised geometry helpers
 # --------------------------------------------------------------------------------------
 
-
-_signed_volumes = signed_volumes
 
 
 def _edge_lengths(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -102,6 +101,16 @@ def validate_mesh(points, tets, *, allow_inverted: bool = False) -> None:
     """
     points = np.asarray(points)
     tets = np.asarray(tets)
+    _check_arrays(points, tets)
+    n = points.shape[0]
+    tets = _check_node_ids(points, tets)
+    _check_volumes(points.astype(np.float64, copy=False), tets, allow_inverted)
+    _check_manifold(tets, n)
+    _warn_unreferenced(tets, n)
+
+
+def _check_arrays(points: np.ndarray, tets: np.ndarray) -> None:
+    """Shapes and dtypes of the two arrays."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise MeshError(
             f"points must have shape (n, 3) (got {points.shape}): give one row of x, y, z "
@@ -126,6 +135,9 @@ def validate_mesh(points, tets, *, allow_inverted: bool = False) -> None:
             "tets.astype(np.int64) after checking the values are whole numbers"
         )
 
+
+def _check_node_ids(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Finite coordinates, node ids in range and distinct within each tet; returns tets as int64."""
     bad_nodes = np.flatnonzero(~np.isfinite(points).all(axis=1))
     if bad_nodes.size:
         raise MeshError(
@@ -151,9 +163,12 @@ def validate_mesh(points, tets, *, allow_inverted: bool = False) -> None:
             f"element ids [{_id_list(repeated)}]: each tet needs four distinct nodes; remove "
             "these collapsed elements"
         )
+    return tets
 
-    points = points.astype(np.float64, copy=False)
-    volumes = _signed_volumes(points, tets)
+
+def _check_volumes(points: np.ndarray, tets: np.ndarray, allow_inverted: bool) -> None:
+    """No degenerate tet, and no inverted one unless ``allow_inverted``."""
+    volumes = signed_volumes(points, tets)
     scale = _edge_lengths(points, tets).mean(axis=1) ** 3
     degenerate = np.flatnonzero(np.abs(volumes) <= DEGENERATE_RELATIVE_VOLUME * scale)
     if degenerate.size:
@@ -170,6 +185,9 @@ def validate_mesh(points, tets, *, allow_inverted: bool = False) -> None:
             "fix_orientation=True to load_mesh"
         )
 
+
+def _check_manifold(tets: np.ndarray, n: int) -> None:
+    """No face shared by more than two tets."""
     keys = _face_keys(_all_faces(tets), n)
     unique_keys, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
     over_shared = counts[inverse.reshape(-1)] > 2
@@ -182,6 +200,9 @@ def validate_mesh(points, tets, *, allow_inverted: bool = False) -> None:
             f"[{_id_list(elements)}]: remove duplicate elements or re-mesh the region"
         )
 
+
+def _warn_unreferenced(tets: np.ndarray, n: int) -> None:
+    """Log the nodes no tet uses (they carry no mass or stiffness)."""
     referenced = np.zeros(n, dtype=bool)
     referenced[tets.reshape(-1)] = True
     unreferenced = np.flatnonzero(~referenced)
@@ -246,7 +267,7 @@ class TetMesh:
 
     def volumes(self) -> np.ndarray:
         """(m,) element volumes in m^3 (positive for a valid mesh)."""
-        return _signed_volumes(self.points, self.tets)
+        return signed_volumes(self.points, self.tets)
 
     def boundary_faces(self) -> np.ndarray:
         """(t, 3) outward-wound boundary triangles in GLOBAL node ids.
@@ -324,7 +345,7 @@ def _kuhn_pattern() -> np.ndarray:
         first = 1 << perm[0]
         second = first + (1 << perm[1])
         tet = [0, first, second, 7]
-        if _signed_volumes(unit, np.array([tet]))[0] < 0:
+        if signed_volumes(unit, np.array([tet]))[0] < 0:
             tet[2], tet[3] = tet[3], tet[2]
         pattern.append(tet)
     return np.array(pattern, dtype=np.int64)
@@ -354,17 +375,16 @@ def _structured_corners(node_id: np.ndarray, periodic0: bool = False) -> np.ndar
 
 
 def _positive_finite(name: str, value, example: str) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise MeshError(f"{name} must be a number (got {value!r}): e.g. {example}") from None
+    x = as_float(value)
+    if x is None:
+        raise MeshError(f"{name} must be a number (got {value!r}): e.g. {example}")
     if not np.isfinite(x) or x <= 0.0:
         raise MeshError(f"{name} must be finite and > 0 (got {value!r}): e.g. {example}")
     return x
 
 
 def _count(name: str, value, minimum: int, example: str) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+    if not is_integer(value):
         raise MeshError(f"{name} must be an integer (got {value!r}): e.g. {example}")
     if value < minimum:
         raise MeshError(f"{name} must be >= {minimum} (got {value}): e.g. {example}")
@@ -533,7 +553,7 @@ def save_mesh(mesh: TetMesh, path, file_format: str | None = None) -> None:
 
 
 def _orient_positively(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    volumes = _signed_volumes(points, tets)
+    volumes = signed_volumes(points, tets)
     inverted = volumes < 0.0
     if inverted.any():
         logger.info("fix_orientation: swapped two nodes of %d inverted tet(s)", int(inverted.sum()))

@@ -10,20 +10,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from numbers import Integral, Real
 
 import numpy as np
 
 from . import kernels
+from ._checks import is_finite_real, is_integer
 from .forcefield import TensorMassForceField
-from .integrators import (
-    BackwardEuler,
-    JacobiPreconditioner,
-    StabilityError,
-    StepStatistics,
-    SymplecticEuler,
-    TissueError,
-)
+from .errors import StabilityError, TissueError
+from .integrators import BackwardEuler, JacobiPreconditioner, StepStatistics, SymplecticEuler
 from .factorization import TangentFactorization
 from .materials import LAWS
 from .mesh import TetMesh, aaa_mesh, load_mesh
@@ -45,14 +39,10 @@ STRAIN_WARNING = 1.0
 STRAIN_DIVERGENCE = 10.0
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, Real) and not isinstance(value, bool)
-
-
 def _check_number(name: str, value, *, minimum=None, minimum_inclusive=True, maximum=None,
                   maximum_inclusive=True, hint: str) -> None:
     """Raise TissueError naming ``name`` unless ``value`` is a finite real number in range."""
-    if not _is_number(value) or not math.isfinite(float(value)):
+    if not is_finite_real(value):
         raise TissueError(f"{name} must be a finite number (got {value!r}): {hint}")
     if minimum is not None and (value < minimum if minimum_inclusive else value <= minimum):
         op = ">=" if minimum_inclusive else ">"
@@ -118,15 +108,14 @@ class TissueParameters:
         if self.integrator not in INTEGRATORS:
             raise TissueError(f"integrator must be one of {INTEGRATORS} (got {self.integrator!r})")
         if self.substeps != "auto":
-            if not isinstance(self.substeps, Integral) or isinstance(self.substeps, bool):
+            if not is_integer(self.substeps):
                 raise TissueError(f"substeps must be an integer >= 1 or 'auto' (got {self.substeps!r})")
             if self.substeps < 1:
                 raise TissueError(f"substeps must be >= 1 (got {self.substeps!r}): or use 'auto'")
         _check_number("cg_tolerance", self.cg_tolerance, minimum=0.0, minimum_inclusive=False,
                       maximum=1.0, maximum_inclusive=False,
                       hint="give the relative CG residual, e.g. 1e-6")
-        if not isinstance(self.cg_max_iterations, Integral) or isinstance(self.cg_max_iterations, bool) \
-                or self.cg_max_iterations < 1:
+        if not is_integer(self.cg_max_iterations) or self.cg_max_iterations < 1:
             raise TissueError(f"cg_max_iterations must be an integer >= 1 (got {self.cg_max_iterations!r}), e.g. 1000")
         if self.preconditioner not in PRECONDITIONERS:
             raise TissueError(f"preconditioner must be one of {PRECONDITIONERS} (got {self.preconditioner!r})")
@@ -246,7 +235,7 @@ class TissueModel:
         # Frozen: nodes no active element touches (they have no mass or stiffness), and the
         # nodes on the interface with the inactive (rigid, at rest) tissue.  Freeing the
         # interface would leave the active region floating unless a clamp set lies inside it
-        # (measured: a cantilever tip region drifted 0.7 m in 10 steps).
+        # (a cantilever's tip region drifts 0.7 m in 10 steps).
         frozen = np.ones(n, dtype=bool)
         frozen[mesh.tets[self.active_elements].ravel()] = False
         frozen[mesh.tets[~self.active_elements].ravel()] = True
@@ -371,9 +360,9 @@ class TissueModel:
 
     def step(self, t: float, dt: float) -> None:
         """Advance from time ``t`` to ``t + dt``.  Explicit refuses an unstable dt (StabilityError)."""
-        if not _is_number(dt) or not math.isfinite(dt) or dt <= 0.0:
+        if not is_finite_real(dt) or dt <= 0.0:
             raise TissueError(f"dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
-        if not _is_number(t) or not math.isfinite(t):
+        if not is_finite_real(t):
             raise TissueError(f"t must be a finite number (got {t!r})")
         stats = self.integrator.step(self.displacement, self.velocity, self._external_force, float(dt))
         # A non-linear law can stiffen past the rest-state stability bound; never hand NaN on.
@@ -399,8 +388,8 @@ class TissueModel:
     def _check_deformation(self, t: float, dt: float) -> None:
         """Extreme strain gets a warning; inverted elements or an absurd strain end the run.
 
-        Measured by the extremes study: a 1 kPa wall or a 90 N indentation ran on silently to
-        Green strains of 1e3 (nodes across the lumen) while every node stayed inside the
+        Why: without it a 1 kPa wall or a 90 N indentation (the extremes study) runs on silently to
+        Green strains of 1e3 (nodes across the lumen) while every node stays inside the
         divergence test above.
         """
         strain = self._max_strain = float(self.force_field.max_strain(self.displacement))
@@ -502,7 +491,7 @@ class TissueModel:
             dt = self.last_dt
             if dt is None:
                 raise TissueError("compliance: no step has been taken yet, so give dt (s), e.g. compliance(ids, 1/30)")
-        if not _is_number(dt) or not math.isfinite(dt) or dt <= 0.0:
+        if not is_finite_real(dt) or dt <= 0.0:
             raise TissueError(f"compliance: dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
         try:
             ids = np.asarray(surface_node_ids)

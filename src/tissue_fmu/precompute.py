@@ -27,7 +27,6 @@ __all__ = [
     "tensor_mass_tensors",
     "tensor_mass_parts",
     "tensors_to_csr",
-    "assemble_stiffness",
     "lumped_masses",
     "edge_strain_bound_factors",
     "edge_element_adjacency",
@@ -73,8 +72,8 @@ def shape_gradients(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, n
     """(grads (m, 4, 3), volumes (m,)) of linear tets; grads[e, j] = grad N_j (constant).
 
     Correct for any vertex order: the gradient of N_j belongs to the vertex listed j whatever the
-    orientation, and the volume is |det| / 6 (a negatively oriented tet used to get a negative
-    volume, i.e. a stiffness and mass of the wrong sign).
+    orientation, and the volume is |det| / 6 (a signed volume would give a negatively oriented tet
+    a stiffness and mass of the wrong sign).
     """
     p0 = points[tets[:, 0]]
     d = np.stack([points[tets[:, 1]] - p0, points[tets[:, 2]] - p0, points[tets[:, 3]] - p0], axis=2)
@@ -167,26 +166,6 @@ def tensors_to_csr(t: TensorMassTensors) -> sp.csr_matrix:
     k.sum_duplicates()
     k.sort_indices()
     return k
-
-
-def assemble_stiffness(points, tets, young_modulus, poisson_ratio) -> sp.csr_matrix:
-    """Global stiffness K (3n x 3n CSR, node-major dofs, f = -K u) from the tensor-mass tensors.
-
-    young_modulus, poisson_ratio: scalars or per-element (m,) arrays (validated).  The tets may
-    list their vertices in any order (either orientation gives the same K); shapes, node ids,
-    degenerate (flat) and non-manifold tets are refused with a MeshError naming them.
-    """
-    from .materials import element_array, lame_parameters  # local: materials imports nothing here
-    from .mesh import validate_mesh  # local: mesh imports this module
-
-    validate_mesh(points, tets, allow_inverted=True)
-    points = np.asarray(points, dtype=np.float64)
-    tets = np.asarray(tets, dtype=np.int64)
-    m = tets.shape[0]
-    e = element_array("young_modulus", young_modulus, m, "1.044e6 (Pa)")
-    nu = element_array("poisson_ratio", poisson_ratio, m, "0.45")
-    lam, mu = lame_parameters(e, nu)
-    return tensors_to_csr(tensor_mass_tensors(points, tets, lam, mu))
 
 
 def lumped_masses(tets, volumes, density, n_nodes: int) -> np.ndarray:

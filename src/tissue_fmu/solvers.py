@@ -24,6 +24,8 @@ __all__ = [
     "preconditioned_bicgstab",
     "GMRESWorkspace",
     "preconditioned_gmres",
+    "masked_dot",
+    "true_residual",
 ]
 
 
@@ -31,17 +33,18 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     """Dot product of two (n, 3) arrays without BLAS.
 
     np.vdot / np.dot go to a multi-threaded BLAS, whose threads spin-wait for cores that other
-    processes hold: measured here 8 ms per dot on a busy 2-core machine against 6-25 us for
-    einsum.  CG does three per iteration, so this keeps the step time predictable.
+    processes hold: on a busy machine a dot then takes milliseconds where einsum takes
+    microseconds.  CG does three per iteration, so this keeps the step time predictable.
     """
     return float(np.einsum("ij,ij->", a, b))
 
 
-def _masked_dot(a: np.ndarray, b: np.ndarray, free: np.ndarray) -> float:
+def masked_dot(a: np.ndarray, b: np.ndarray, free: np.ndarray) -> float:
+    """sum(a * b * free) of (n, 3) arrays: a dot product over the free dofs (einsum, no BLAS)."""
     return float(np.einsum("ij,ij,ij->", a, b, free))
 
 
-def _true_residual(apply_matrix, b: np.ndarray, x: np.ndarray, free: np.ndarray, r: np.ndarray,
+def true_residual(apply_matrix, b: np.ndarray, x: np.ndarray, free: np.ndarray, r: np.ndarray,
                    scratch: np.ndarray) -> float:
     """r = free * (b - A x); returns ||r||."""
     apply_matrix(x, scratch)
@@ -87,7 +90,7 @@ def preconditioned_cg(
     """
     r, z, p, q, t = work.r, work.z, work.p, work.q, work.t
     np.multiply(x, free, out=x)
-    b_norm = math.sqrt(_masked_dot(b, b, free))
+    b_norm = math.sqrt(masked_dot(b, b, free))
     if b_norm == 0.0:
         x.fill(0.0)
         return 0, 0.0, True
@@ -96,7 +99,7 @@ def preconditioned_cg(
     while True:
         # The recurrence residual drifts from b - A x in round-off: convergence is only
         # declared on the true residual, and a drifted iteration restarts from it.
-        r_norm = _true_residual(apply_matrix, b, x, free, r, q)
+        r_norm = true_residual(apply_matrix, b, x, free, r, q)
         if r_norm <= target:
             return iterations, r_norm / b_norm, True
         if iterations >= max_iterations or not math.isfinite(r_norm):
@@ -113,7 +116,7 @@ def preconditioned_cg(
                 # NaN: CG cannot continue, return what we have.
                 logger.warning("conjugate gradients broke down: p^T A p = %g after %d iterations",
                                p_q, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, q)
+                r_norm = true_residual(apply_matrix, b, x, free, r, q)
                 return iterations, r_norm / b_norm, False
             alpha = rz / p_q
             np.multiply(p, alpha, out=t)
@@ -163,10 +166,9 @@ def preconditioned_bicgstab(
     ``||b - A x|| <= tolerance ||b||``, returns (iterations, relative residual, converged)).
     Needed for the consistent ETMM tangent, which is not symmetric.
     """
-    r, r_hat, p, v, y, s, z, t, tmp = (work.r, work.r_hat, work.p, work.v, work.y, work.s, work.z,
-                                        work.t, work.tmp)
+    r, r_hat, tmp = work.r, work.r_hat, work.tmp
     np.multiply(x, free, out=x)
-    b_norm = math.sqrt(_masked_dot(b, b, free))
+    b_norm = math.sqrt(masked_dot(b, b, free))
     if b_norm == 0.0:
         x.fill(0.0)
         return 0, 0.0, True
@@ -174,62 +176,74 @@ def preconditioned_bicgstab(
     iterations = 0
     while True:
         # Convergence only on the true residual; a drifted recurrence restarts from it.
-        r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
+        r_norm = true_residual(apply_matrix, b, x, free, r, tmp)
         if r_norm <= target:
             return iterations, r_norm / b_norm, True
         if iterations >= max_iterations or not math.isfinite(r_norm):
             return iterations, r_norm / b_norm, False
         np.copyto(r_hat, r)
-        p.fill(0.0)
-        v.fill(0.0)
-        rho = alpha = omega = 1.0
-        while iterations < max_iterations:
-            rho_new = _dot(r_hat, r)
-            if rho_new == 0.0 or omega == 0.0 or not math.isfinite(rho_new):
-                logger.warning("BiCGSTAB broke down (rho = %g, omega = %g) after %d iterations",
-                               rho_new, omega, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-                return iterations, r_norm / b_norm, False
-            beta = (rho_new / rho) * (alpha / omega)
-            rho = rho_new
-            # p = r + beta (p - omega v)
-            np.multiply(v, omega, out=tmp)
-            np.subtract(p, tmp, out=p)
-            np.multiply(p, beta, out=p)
-            np.add(p, r, out=p)
-            precondition(p, y)
-            apply_matrix(y, v)
-            np.multiply(v, free, out=v)
-            r_hat_v = _dot(r_hat, v)
-            if r_hat_v == 0.0 or not math.isfinite(r_hat_v):
-                logger.warning("BiCGSTAB broke down (r_hat . v = %g) after %d iterations", r_hat_v, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-                return iterations, r_norm / b_norm, False
-            alpha = rho / r_hat_v
-            # half step: s = r - alpha v, x += alpha y
-            np.multiply(v, alpha, out=tmp)
-            np.subtract(r, tmp, out=s)
-            np.multiply(y, alpha, out=tmp)
-            np.add(x, tmp, out=x)
-            iterations += 1
-            if math.sqrt(_dot(s, s)) <= target:
-                break
-            precondition(s, z)
-            apply_matrix(z, t)
-            np.multiply(t, free, out=t)
-            t_t = _dot(t, t)
-            if t_t == 0.0 or not math.isfinite(t_t):
-                logger.warning("BiCGSTAB broke down (t . t = %g) after %d iterations", t_t, iterations)
-                r_norm = _true_residual(apply_matrix, b, x, free, r, tmp)
-                return iterations, r_norm / b_norm, False
-            omega = _dot(t, s) / t_t
-            # x += omega z;  r = s - omega t
-            np.multiply(z, omega, out=tmp)
-            np.add(x, tmp, out=x)
-            np.multiply(t, omega, out=tmp)
-            np.subtract(s, tmp, out=r)
-            if math.sqrt(_dot(r, r)) <= target:
-                break
+        iterations, broke_down = _bicgstab_cycle(apply_matrix, x, precondition, free, target, max_iterations,
+                                                 iterations, work)
+        if broke_down:
+            r_norm = true_residual(apply_matrix, b, x, free, r, tmp)
+            return iterations, r_norm / b_norm, False
+
+
+def _bicgstab_cycle(apply_matrix, x, precondition, free, target: float, max_iterations: int, iterations: int,
+                    work: BiCGStabWorkspace) -> tuple[int, bool]:
+    """BiCGSTAB iterations from the residual in ``work.r`` (and ``work.r_hat``, its shadow) until
+    the recurrence residual is below ``target`` or ``max_iterations`` are done; returns (the
+    iteration count, whether it broke down, logged)."""
+    r, r_hat, p, v, y, s, z, t, tmp = (work.r, work.r_hat, work.p, work.v, work.y, work.s, work.z,
+                                        work.t, work.tmp)
+    p.fill(0.0)
+    v.fill(0.0)
+    rho = alpha = omega = 1.0
+    while iterations < max_iterations:
+        rho_new = _dot(r_hat, r)
+        if rho_new == 0.0 or omega == 0.0 or not math.isfinite(rho_new):
+            logger.warning("BiCGSTAB broke down (rho = %g, omega = %g) after %d iterations",
+                           rho_new, omega, iterations)
+            return iterations, True
+        beta = (rho_new / rho) * (alpha / omega)
+        rho = rho_new
+        # p = r + beta (p - omega v)
+        np.multiply(v, omega, out=tmp)
+        np.subtract(p, tmp, out=p)
+        np.multiply(p, beta, out=p)
+        np.add(p, r, out=p)
+        precondition(p, y)
+        apply_matrix(y, v)
+        np.multiply(v, free, out=v)
+        r_hat_v = _dot(r_hat, v)
+        if r_hat_v == 0.0 or not math.isfinite(r_hat_v):
+            logger.warning("BiCGSTAB broke down (r_hat . v = %g) after %d iterations", r_hat_v, iterations)
+            return iterations, True
+        alpha = rho / r_hat_v
+        # half step: s = r - alpha v, x += alpha y
+        np.multiply(v, alpha, out=tmp)
+        np.subtract(r, tmp, out=s)
+        np.multiply(y, alpha, out=tmp)
+        np.add(x, tmp, out=x)
+        iterations += 1
+        if math.sqrt(_dot(s, s)) <= target:
+            break
+        precondition(s, z)
+        apply_matrix(z, t)
+        np.multiply(t, free, out=t)
+        t_t = _dot(t, t)
+        if t_t == 0.0 or not math.isfinite(t_t):
+            logger.warning("BiCGSTAB broke down (t . t = %g) after %d iterations", t_t, iterations)
+            return iterations, True
+        omega = _dot(t, s) / t_t
+        # x += omega z;  r = s - omega t
+        np.multiply(z, omega, out=tmp)
+        np.add(x, tmp, out=x)
+        np.multiply(t, omega, out=tmp)
+        np.subtract(s, tmp, out=r)
+        if math.sqrt(_dot(r, r)) <= target:
+            break
+    return iterations, False
 
 
 class GMRESWorkspace:
@@ -269,14 +283,14 @@ def preconditioned_gmres(
                                      work.cs, work.sn)
     restart = work.restart
     np.multiply(x, free, out=x)
-    b_norm = math.sqrt(_masked_dot(b, b, free))
+    b_norm = math.sqrt(masked_dot(b, b, free))
     if b_norm == 0.0:
         x.fill(0.0)
         return 0, 0.0, True
     target = tolerance * b_norm
     iterations = 0
     while True:
-        beta = _true_residual(apply_matrix, b, x, free, r, tmp)
+        beta = true_residual(apply_matrix, b, x, free, r, tmp)
         if beta <= target:
             return iterations, beta / b_norm, True
         if iterations >= max_iterations or not math.isfinite(beta):
