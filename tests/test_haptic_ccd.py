@@ -153,7 +153,7 @@ def falling_vertex_query(z0, z1, xy=(0.25, 0.25)):
 @pytest.fixture(scope="module")
 def sample_queries():
     if not SAMPLE_ROOT.is_dir():
-        pytest.fail(f"sample queries not found at {SAMPLE_ROOT} (see DESIGN.md section 7)")
+        pytest.fail(f"sample queries not found at {SAMPLE_ROOT} (see docs/design.md section 7)")
     return {kind: ccd.read_sample_query_set(SAMPLE_ROOT, kind) for kind in ("vertex-face", "edge-edge")}
 
 

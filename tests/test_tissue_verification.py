@@ -1,5 +1,5 @@
 """Verification of the tensor-mass force field against problems with known answers
-(DESIGN.md section 7): patch test, uniaxial cube with rollers, cantilever convergence to the
+(docs/design.md section 7): patch test, uniaxial cube with rollers, cantilever convergence to the
 Timoshenko beam, Raghavan-Vorp uniaxial closed form (ETMM and hyperelastic), Kelvin-Voigt creep,
 and the explicit critical time step against the true spectrum.
 

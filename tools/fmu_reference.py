@@ -43,10 +43,11 @@ LISTED_VALUES = 12
 
 def _build_side():
     """The project's FMUs as the build knows them, and the build's step that adds data to a package
-    copy. The one place this tool depends on the build (``orchestration/build.py``)."""
-    from orchestration.build import FMU_SPECS, _add_build_data
+    copy. The one place this tool depends on the build (``fmu_build``)."""
+    from fmu_build.package import add_build_data
+    from fmu_build.specs import FMU_SPECS
 
-    return FMU_SPECS, _add_build_data
+    return FMU_SPECS, add_build_data
 
 
 # -- reading the declarations (in a fresh interpreter: python tools/fmu_reference.py --declarations) --

@@ -3,7 +3,7 @@
 An active compliant micro-mechanism at the catheter tip senses the contact effort, bends the
 tip away from the vessel wall to keep that effort under a threshold, and reports an order to
 the surgeon (``effort_warning``, ``advised_insertion_scale``). The FMU wrapper (written on top
-of this package) maps DESIGN.md section 4 ports one to one onto ``CatheterModel.step``.
+of this package) maps docs/design.md section 4 ports one to one onto ``CatheterModel.step``.
 
 Modules:
     geometry    ``CenterlineCurve``: arc-length polyline of the vessel (default: AAA aorta axis,

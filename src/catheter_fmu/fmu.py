@@ -1,6 +1,6 @@
 """The Catheter FMU: its interface, declared once, and the glue to :class:`catheter_fmu.model.CatheterModel`.
 
-Ports follow DESIGN.md section 4. The number of centerline points (``n_tool_points`` =
+Ports follow docs/design.md section 4. The number of centerline points (``n_tool_points`` =
 segments + 1) and of vessel-centerline vertices are structural parameters: they size the arrays.
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ FLOAT_PARAMETERS = [
 
 
 #: The plausible range of every number an importer gives this FMU, and why (a 6 Fr catheter in an
-#: aorta, DESIGN.md section 7). Values outside are refused (fmi3Error naming the variable, the value
+#: aorta, docs/design.md section 7). Values outside are refused (fmi3Error naming the variable, the value
 #: and this range); the model checks the relations between them (CatheterParameters.validate).
 LIMITS = {
     "segment_length": Limit(1e-4, 0.1, "a catheter link is millimetres long (5 mm by default)"),

@@ -220,7 +220,7 @@ class CatheterParameters:
 
 @dataclass
 class CatheterOutputs:
-    """Outputs at the end of a step (port names of DESIGN.md section 4)."""
+    """Outputs at the end of a step (port names of docs/design.md section 4)."""
 
     centerline_positions: np.ndarray  # (n_tool * 3,) flat, proximal end first, tip last
     tip_position: np.ndarray  # (3,)

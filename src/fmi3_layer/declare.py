@@ -30,7 +30,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
-#: Units used by the project's ports: name -> SI base-unit exponents (DESIGN.md section 4).
+#: Units used by the project's ports: name -> SI base-unit exponents (docs/design.md section 4).
 SI_UNITS: dict[str, dict[str, int]] = {
     "m": dict(m=1),
     "s": dict(s=1),

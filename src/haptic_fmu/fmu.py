@@ -1,6 +1,6 @@
 """The Contact FMU: its interface, declared once, and the glue to :class:`haptic_fmu.model.ContactModel`.
 
-Ports follow DESIGN.md section 4. The tissue surface comes from the Tissue FMU: its topology
+Ports follow docs/design.md section 4. The tissue surface comes from the Tissue FMU: its topology
 (``surface_triangles``, local surface-node ids) is a fixed parameter, and a new tissue frame is
 taken exactly when the input ``tissue_frame`` changes (connect it to Tissue's ``frame``), however
 often an importer sets the other inputs; between frames the 1 kHz loop renders the local model.
@@ -23,7 +23,7 @@ DEFAULT_SURFACE_FILE = Path(__file__).resolve().parent / "default_tissue_surface
 
 _defaults = ContactParameters()
 
-#: The plausible range of every number an importer gives this FMU, and why (DESIGN.md section 7:
+#: The plausible range of every number an importer gives this FMU, and why (docs/design.md section 7:
 #: haptic devices render at most 5000 N/m and 12 N; the device's own limit is max_force). Values
 #: outside are refused (fmi3Error naming the variable, the value and this range) instead of
 #: rendering an absurd force.

@@ -1,6 +1,6 @@
 """The Tissue FMU: its interface, declared once, and the glue to :class:`tissue_fmu.model.TissueModel`.
 
-Ports follow DESIGN.md section 4. Arrays are ``[n, 3]`` node-major, i.e. flat ``x0, y0, z0, x1, ...``
+Ports follow docs/design.md section 4. Arrays are ``[n, 3]`` node-major, i.e. flat ``x0, y0, z0, x1, ...``
 on the wire.
 
 Array sizes depend on the mesh, so they are structural parameters (``n_surface_nodes``,
@@ -30,7 +30,7 @@ def _default_surface_counts() -> tuple[int, int]:
     return int(nodes.shape[0]), int(triangles.shape[0])
 
 
-#: The plausible range of every number an importer gives this FMU, and why (DESIGN.md section 7 for
+#: The plausible range of every number an importer gives this FMU, and why (docs/design.md section 7 for
 #: the reference values). Values outside are refused (fmi3Error naming the variable, the value and
 #: this range) instead of being simulated into an absurd or endless result.
 LIMITS = {
@@ -52,7 +52,7 @@ LIMITS = {
                                              "solve of these meshes (the iterations cost about 0.1 ms each)"),
     "compliance_tolerance": Limit(1e-15, 0.5, "a relative residual below 1e-15 is under round-off; above 0.5 the "
                                               "compliance is not solved for"),
-    **{name: Limit(1e-4, 1.0, "AAA generator lengths are millimetres to centimetres (DESIGN.md section 7); "
+    **{name: Limit(1e-4, 1.0, "AAA generator lengths are millimetres to centimetres (docs/design.md section 7); "
                               "beyond [0.1 mm, 1 m] the unit is wrong")
        for name in ("aorta_radius", "aneurysm_radius", "aneurysm_length", "segment_length", "wall_thickness")},
     "n_circumferential": Limit(8, 1024, "elements around the vessel: 8 at least for a round wall, 1024 (0.15 mm "

@@ -4,7 +4,7 @@ Python layer: validates the inputs, precomputes the rest-state tensors (precompu
 the numba kernels (kernels.py).  The material derivations are in materials.py.
 
 Laws
-- ``linear``: f = -K u with the vertex/edge tensors of DESIGN.md section 6.
+- ``linear``: f = -K u with the vertex/edge tensors of docs/design.md section 6.
 - ``etmm``: linear plus the per-element secant correction ``-(dlam A + dmu B) u_T`` on elements
   whose extreme Green strain (axisymmetric-equivalent, from the strain invariants; materials.py)
   exceeds ``nonlinear_strain_threshold`` (ramped in over [t, 2t] so the force is continuous),

@@ -1,7 +1,7 @@
 """Rest-state precomputation of the tensor-mass model (vectorised numpy, no loops over elements).
 
 Per tet with shape-function gradients g_j (j = 0..3, constant over a linear tet) and volume V,
-the 3x3 block coupling local vertices j and k is (DESIGN.md section 6)
+the 3x3 block coupling local vertices j and k is (docs/design.md section 6)
 
     K_jk = lam A_jk + mu B_jk,   A_jk = V g_j (x) g_k,   B_jk = V (g_k (x) g_j + (g_j . g_k) I).
 
