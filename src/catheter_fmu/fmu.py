@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._coupling import TOOL_POINTS
 from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
 from .geometry import CenterlineCurve
 from .model import CatheterModel, CatheterParameterError, CatheterParameters
@@ -47,7 +48,7 @@ LIMITS = {
     "force_threshold": Limit(1e-6, 1e3, "tip forces that matter are 0.1-10 N"),
     "setpoint_fraction": Limit(1e-6, 1.0, "the regulated force is a fraction of the threshold"),
     "warning_hysteresis": Limit(0.0, 1e3, "a fraction of force_threshold (checked against it)"),
-    "n_tool_points": Limit(2, 10_001, "catheter centerline points (segments + 1): 31 by default"),
+    "n_tool_points": Limit(2, 10_001, f"catheter centerline points (segments + 1): {TOOL_POINTS} by default"),
     "n_centerline_points": Limit(2, 1_000_000, "vertices of the vessel centerline polyline"),
     "centerline_points": Limit(-100.0, 100.0, "the vessel lies within 100 m of the origin"),
     "insertion": Limit(-100.0, 100.0, "an inserted length of metres; 100 m is no catheter"),

@@ -52,6 +52,7 @@ import numpy as np
 
 from . import kernels
 from ._checks import as_float, is_integer
+from ._coupling import TOOL_POINTS
 from .actuator import Actuator
 from .controller import EffortMonitor, ForceRegulator
 from .geometry import CenterlineCurve
@@ -112,7 +113,7 @@ class CatheterParameters:
     in units of the threshold).
     """
 
-    n_segments: int = 30
+    n_segments: int = TOOL_POINTS - 1
     segment_length: float = 0.005
     radius: float = 0.001
     active_length: float = 0.02

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._coupling import TOOL_POINTS
 from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
 from .model import ContactModel, ContactParameters
 from .rendering import LOCAL_POLICIES
@@ -50,7 +51,7 @@ LIMITS = {
                                            "2 with a Jacobi connection and an average"),
     "n_surface_nodes": Limit(3, 2_000_000, "surface nodes of a tissue mesh the Tissue FMU builds"),
     "n_surface_triangles": Limit(1, 4_000_000, "surface triangles of a tissue mesh the Tissue FMU builds"),
-    "n_tool_points": Limit(1, 10_000, "points of a catheter centerline (31 by default) or 1 for a probe"),
+    "n_tool_points": Limit(1, 10_000, f"points of a catheter centerline ({TOOL_POINTS} by default) or 1 for a probe"),
     "max_patch_nodes": Limit(1, 256, "the compliance block is (3 n)^2 values solved by Tissue each frame"),
     "tissue_positions": Limit(-100.0, 100.0, "positions of a body's tissue lie within 100 m of the origin"),
     "tissue_velocities": Limit(-1e3, 1e3, "tissue moves at centimetres per second; 1 km/s is a diverged input"),
@@ -111,7 +112,7 @@ VARIABLES = (
               "about K T / 2 v^2 per second)"),
     structural("n_surface_nodes", len(DEFAULT_POSITIONS), "tissue surface nodes (array size)"),
     structural("n_surface_triangles", len(DEFAULT_TRIANGLES), "tissue surface triangles (array size)"),
-    structural("n_tool_points", 31, "tool points: catheter centerline points, or 1 for a probe"),
+    structural("n_tool_points", TOOL_POINTS, "tool points: catheter centerline points, or 1 for a probe"),
     structural("max_patch_nodes", _defaults.max_patch_nodes,
                "most surface nodes the contact names for the wall's compliance (array size)"),
     parameter("compliance_force_lag", int(_defaults.compliance_force_lag),

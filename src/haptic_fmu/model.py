@@ -57,6 +57,7 @@ import numpy as np
 from . import aabb, aabb_kernels, ccd, narrow_phase, penalty_kernels
 from . import rendering_kernels
 from ._checks import is_finite_real, is_integer
+from ._coupling import PATCH_NODES
 from .geometry import all_finite, difference_velocity, max_displacement, max_displacement_rows
 from .device import DEFAULT_MAX_FORCE_RATE, PHANTOM_DESKTOP_MAX_FORCE, DeviceSpec, ForceLimiter
 from .passivity import DEFAULT_CYCLE_TOLERANCE, PassiveRenderer
@@ -101,7 +102,7 @@ class ContactParameters:
     passivity_max_damping: float = 20.0  # N s/m, cap of the controller's damping (keep < 2 m_device / dt)
     margin: float = 0.003              # m, broad-phase margin of the local model
     frame_period: float = 1.0 / 30.0   # s, expected tissue frame period (extent of extrapolated boxes)
-    max_patch_nodes: int = 16          # N, most surface nodes the contact names for the compliance (structural)
+    max_patch_nodes: int = PATCH_NODES          # N, most surface nodes the contact names for the compliance (structural)
     compliance_free_motion: str = "hold"  # the wall's free motion between frames: "hold" | "extrapolate"
     compliance_force_lag: int = 2      # frames between the haptic interval whose mean force the tissue applied
     #                                    and the frame showing it, when the tissue does not report the force

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._coupling import PATCH_NODES
 from ._fmi import FmuDeclaration, Limit, calculated, input_port, output, parameter, structural
 from .errors import MeshError
 from .mesh import aaa_mesh, load_mesh
@@ -108,7 +109,7 @@ VARIABLES = (
       for name, value in AAA_RESOLUTION.items()),
     structural("n_surface_nodes", _n_nodes, "surface nodes of the mesh (array size)"),
     structural("n_surface_triangles", _n_triangles, "surface triangles of the mesh (array size)"),
-    structural("n_patch_nodes", 16, "most surface nodes whose compliance Contact may ask for (array size)"),
+    structural("n_patch_nodes", PATCH_NODES, "most surface nodes whose compliance Contact may ask for (array size)"),
     input_port("contact_force", "nodal contact forces on the surface nodes", "N", shape=PER_NODE),
     input_port("patch_nodes", "surface nodes whose compliance is wanted (from Contact), -1 padded", type="Int32",
                shape=("n_patch_nodes",), start=-1),
