@@ -140,14 +140,13 @@ def test_every_module_imports(name):
 #: packages before it (and the FMU build, which imports nothing of the orchestrator).
 LAYERS = ("fmu_build", "orchestration.errors", "orchestration.stopping", "orchestration.hosts", "orchestration.plan",
           "orchestration.blocks", "orchestration.scene", "orchestration.observers", "orchestration.run",
-          "orchestration.studies", "orchestration.app", "orchestration.__main__")
+          "orchestration.studies", "orchestration.app", "orchestration.__main__", "orchestration.studies.__main__")
 
 
 def _layer(name: str) -> int | None:
-    for index, layer in enumerate(LAYERS):
-        if name == layer or name.startswith(layer + "."):
-            return index
-    return None
+    """The index of the most specific layer ``name`` belongs to."""
+    found = [(len(layer), index) for index, layer in enumerate(LAYERS) if name == layer or name.startswith(layer + ".")]
+    return max(found)[1] if found else None
 
 
 def test_the_orchestrators_packages_import_only_those_before_them():

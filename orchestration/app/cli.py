@@ -15,6 +15,7 @@ from fmu_build.paths import DEFAULT_FMU_DIR
 from orchestration.hosts.native_threads import limit_native_threads
 from orchestration.run.status import COMPLETE
 from orchestration.scene.model import HOSTINGS
+from orchestration.studies import STUDIES
 
 logger = logging.getLogger("orchestration")
 
@@ -340,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     p_run.set_defaults(func=_cmd_run)
 
     p_study = sub.add_parser("study", help="run a study: tradeoff, stability or extremes")
-    p_study.add_argument("name", choices=("tradeoff", "stability", "extremes"))
+    p_study.add_argument("name", choices=STUDIES)
     p_study.add_argument("--out", default=None, help="result folder (default results/study_<name>)")
     p_study.add_argument("--quick", action="store_true", help="a reduced sweep (what the tests run)")
     p_study.add_argument("--workers", type=_workers, default=None, help="parallel processes (default: CPU count)")
