@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 
 from ._coupling import TOOL_POINTS
-from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
+from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, publish, published_outputs, structural
 from .geometry import CenterlineCurve
-from .model import CatheterModel, CatheterParameterError, CatheterParameters
+from .model import CatheterModel, CatheterOutputs, CatheterParameterError, CatheterParameters
 
 #: Float64 parameters passed to CatheterParameters unchanged: (name, unit, description).
 FLOAT_PARAMETERS = [
@@ -107,6 +107,10 @@ def _in_fmu_names(message: str) -> str:
     return message
 
 
+#: The outputs copied from the model's record after each step (the arrays it writes in place).
+PUBLISHED = published_outputs(VARIABLES, CatheterOutputs, written_in_place=("centerline_positions", "tip_position"))
+
+
 class CatheterFmu:
     """Builds the catheter model from the parameters and steps it with the operator's inputs."""
 
@@ -139,13 +143,7 @@ class CatheterFmu:
         self._publish(out)
 
     def _publish(self, out) -> None:
-        v = self.values
-        v.bend_angle = out.bend_angle
-        v.actuator_command = out.actuator_command
-        v.effort_warning = out.effort_warning
-        v.advised_insertion_scale = out.advised_insertion_scale
-        v.tip_force_magnitude = out.tip_force_magnitude
-        v.total_bend = out.total_bend
+        publish(self.values, out, PUBLISHED)
 
 
 DECLARATION = FmuDeclaration(

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from dataclasses import fields as dataclasses_fields
 from typing import Any, Callable
 
 #: Units used by the project's ports: name -> SI base-unit exponents (docs/design.md section 4).
@@ -230,3 +231,23 @@ class FmuDeclaration:
 #: Every FMU's internal step: fmi3DoStep runs h / internal_step model steps in one call.
 INTERNAL_STEP_LIMIT = Limit(1e-6, 10.0, "below 1 us a step costs less than the FMI call around it; above 10 s "
                                         "no model of this project is meant to step")
+
+
+def published_outputs(variables, record_type, written_in_place=()) -> tuple[str, ...]:
+    """The outputs an adapter copies from the model's output record after each step: every declared
+    output that is a field of ``record_type`` (a dataclass), except those the model writes into the
+    FMU's buffers itself (``written_in_place``). A declared output that neither covers raises here,
+    when the FMU's package is imported (the build): an output is its declaration plus its field."""
+    fields = {f.name for f in dataclasses_fields(record_type)}
+    outputs = [v.name for v in variables if v.causality == "output"]
+    missing = [name for name in outputs if name not in fields and name not in written_in_place]
+    if missing:
+        raise ValueError(f"outputs {missing} are declared but {record_type.__name__} has no such field and they "
+                         "are not written in place: add the field to the model's outputs")
+    return tuple(name for name in outputs if name in fields and name not in written_in_place)
+
+
+def publish(values, record, names: tuple[str, ...]) -> None:
+    """Copy the outputs ``names`` (see :func:`published_outputs`) from the model's ``record`` into the FMU."""
+    for name in names:
+        setattr(values, name, getattr(record, name))

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ._coupling import TOOL_POINTS
-from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, structural
-from .model import ContactModel, ContactParameters
+from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, publish, published_outputs, structural
+from .model import ContactModel, ContactOutputs, ContactParameters
 from .rendering import LOCAL_POLICIES
 
 DEFAULT_SURFACE_FILE = Path(__file__).resolve().parent / "default_tissue_surface.npz"
@@ -159,6 +159,11 @@ VARIABLES = (
 )
 
 
+#: The outputs copied from the model's record after each step (the arrays it writes in place).
+PUBLISHED = published_outputs(VARIABLES, ContactOutputs,
+                              written_in_place=("tool_force", "tip_force", "tissue_contact_force", "patch_nodes"))
+
+
 class ContactFmu:
     """Builds the contact model from the parameters and steps it with the inputs."""
 
@@ -197,17 +202,7 @@ class ContactFmu:
         # copy) wrote this step into its own: bind it to the buffers again (they take this step's values)
         if out.tissue_contact_force is not v.tissue_contact_force:
             model.write_outputs_into(v.tool_force, v.tip_force, v.tissue_contact_force, v.patch_nodes)
-        v.tip_stiffness = out.tip_stiffness
-        v.tip_gap = out.tip_gap
-        v.penetration_depth = out.penetration_depth
-        v.contact_count = out.contact_count
-        v.contact_energy = out.contact_energy
-        v.passivity_energy = out.passivity_energy
-        v.force_limited = out.force_limited
-        v.force_limited_steps = out.force_limited_steps
-        v.contact_cycles = out.contact_cycles
-        v.active_cycles = out.active_cycles
-        v.last_cycle_energy = out.last_cycle_energy
+        publish(v, out, PUBLISHED)
 
 
 DECLARATION = FmuDeclaration(
