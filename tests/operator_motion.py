@@ -21,9 +21,11 @@ What is recorded, and why
 - tissue: its scalar outputs (finite?) and its surface at every frame (VTU, every = 1), which the
   phantom judge measures distances against. Rigid scenes take their surface from the source.
 
-The scenes with a Contact FMU are all four shipped ones. ``virtual_wall`` drives a device plant
-with an operator *force*; here its device is replaced by a scripted probe position (the judges
-need a prescribed motion; the device loop's stability is tests/test_haptic_wall.py's business).
+The harness is for every shipped scene that runs the Contact FMU (:func:`contact_scenes`, from
+tests/project.py: all four today), each described in ``CONTACT_SCENES``. ``virtual_wall`` drives
+a device plant with an operator *force*; here its device is replaced by a scripted probe position
+(the judges need a prescribed motion; the device loop's stability is tests/test_haptic_wall.py's
+business).
 """
 from __future__ import annotations
 
@@ -39,8 +41,11 @@ import numpy as np
 from orchestration.master import run_scene
 from orchestration.recording import read_stream
 from orchestration.scene import SCENE_DIR, scene_from_dict
+from project import scene_fmus, shipped_scenes
 
 DT = 0.001  # s: the haptic step of every contact scene
+#: the FMU whose rendering the harness judges
+CONTACT_FMU = "Contact"
 
 
 # -------------------------------------------------------------------------------- scene metadata
@@ -79,6 +84,12 @@ CONTACT_SCENES: dict[str, ContactScene] = {
     # speed; depth up to 2.5 mm, where 2 N holds it against 800 N/m
     "virtual_wall": ContactScene("virtual_wall", "probe", "probe", "wall", 0.0, (-0.003, 0.0025), 0.3),
 }
+
+def contact_scenes() -> list[str]:
+    """The shipped scenes that run the contact FMU: those the harness is for (each must have its
+    entry in CONTACT_SCENES)."""
+    return [scene for scene in shipped_scenes() if CONTACT_FMU in scene_fmus(scene)]
+
 
 #: tissue_indentation's sac: the probe moves in the plane z = 0.065 m, radially toward the axis
 SAC_RADIUS = 0.0265

@@ -31,21 +31,13 @@ from hypothesis import strategies as st
 from orchestration import cli
 from orchestration.scene import (_COMPONENT_NAME, _FILE_NAME, _SCENE_NAME, MAX_RUN_STEPS, MAX_STEP, MIN_STEP,
                                  SCENE_DIR, Scene, SceneError, load_scene, scene_from_dict)
+from project import shipped_scenes
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = ("aaa_endovascular", "virtual_wall", "tissue_indentation", "catheter_tube")
+SHIPPED = shipped_scenes()
 
+# The shipped scenes name their FMUs by file name, looked up in fmus/ (tests/conftest.py builds them).
 pytestmark = pytest.mark.usefixtures("fmus_in_repo")
-
-
-@pytest.fixture(scope="module")
-def fmus_in_repo():
-    """The shipped scenes name Tissue.fmu etc., looked up in fmus/: build them there if missing."""
-    from orchestration.build import available_fmus, build_fmu, fmu_is_stale
-
-    for name in available_fmus():
-        if fmu_is_stale(name):
-            build_fmu(name)
 
 
 # -- writing TOML (no writer in the standard library) ----------------------------------------------

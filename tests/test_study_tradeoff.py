@@ -77,10 +77,7 @@ def test_pareto_front_against_brute_force():
 # --- the quick study ---------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def quick_study(tmp_path_factory):
-    from orchestration.build import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
+def quick_study(tmp_path_factory, fmus_in_repo):
     out = tmp_path_factory.mktemp("study_tradeoff")
     report = tradeoff.run(out, quick=True, workers=2, progress=False)
     with open(out / "tradeoff.csv") as handle:
