@@ -8,6 +8,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 from fmu_build.package import build_fmu
+from project import FMU_NAMES, fmu_file_name
 
 # Fuzzers (tests/test_fuzz_*.py) run a bounded number of cases in CI and many more on demand:
 #     pytest tests/test_fuzz_*.py --hypothesis-profile=long
@@ -34,24 +35,50 @@ def fmu_dir(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def tissue_fmu(fmu_dir) -> Path:
-    return build_fmu("Tissue", fmu_dir)
+def built_fmu(fmu_dir):
+    """``built_fmu(name)`` -> path of the .fmu: an FMU of the build's table (tests/project.py) built
+    from this checkout into ``fmu_dir``, once per session and only when a test asks for it."""
+    built: dict[str, Path] = {}
+
+    def build(name: str) -> Path:
+        if name not in built:
+            built[name] = build_fmu(name, fmu_dir)
+        return built[name]
+
+    return build
 
 
 @pytest.fixture(scope="session")
-def catheter_fmu(fmu_dir) -> Path:
-    return build_fmu("Catheter", fmu_dir)
+def fmus(built_fmu) -> dict[str, Path]:
+    """Every FMU of the build's table: name -> path of the .fmu."""
+    return {name: built_fmu(name) for name in FMU_NAMES}
+
+
+def _fmu_fixture(name: str):
+    def fixture(built_fmu) -> Path:
+        return built_fmu(name)
+
+    fixture.__doc__ = f"{name}.fmu, built once per session (the build's table names it)."
+    return pytest.fixture(scope="session", name=f"{name.lower()}_fmu")(fixture)
+
+
+# One fixture per FMU of the table, named after it: tissue_fmu, contact_fmu, catheter_fmu, ...
+for _name in FMU_NAMES:
+    globals()[f"{_name.lower()}_fmu"] = _fmu_fixture(_name)
+del _name
 
 
 @pytest.fixture(scope="session")
-def contact_fmu(fmu_dir) -> Path:
-    return build_fmu("Contact", fmu_dir)
+def fmus_in_repo() -> dict[str, Path]:
+    """The FMUs of the table built into fmus/, where the shipped scenes and the command line find
+    them (when missing or older than their sources; the numba cache warmed), as ``python -m
+    orchestration run`` does first: name -> path of the .fmu. For every test that loads a shipped
+    scene or runs the command line, so that it passes alone on a fresh clone."""
+    from fmu_build.paths import DEFAULT_FMU_DIR
+    from orchestration.app.warmup import ensure_fmus_built
 
-
-@pytest.fixture(scope="session")
-def fmus(tissue_fmu, contact_fmu, catheter_fmu) -> dict[str, Path]:
-    """The three project FMUs: name -> path of the .fmu."""
-    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
+    ensure_fmus_built(quiet=True)
+    return {name: DEFAULT_FMU_DIR / fmu_file_name(name) for name in FMU_NAMES}
 
 
 @pytest.fixture(params=["importer", "helper"])

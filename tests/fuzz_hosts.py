@@ -384,6 +384,8 @@ class PlainRun:
         return [get_command(p[n]) for n in self.outputs]
 
 
+#: The legal runs the fuzzers build their cases on, per FMU: what makes a run of it do something
+#: (a contact, a bent tip, a deformed wall). An FMU without one gets :func:`default_plain_run`.
 PLAIN_RUNS = {
     "Catheter": PlainRun(0.001, 6, {}, {"controller_mode": "regulate"}, {"insertion": 0.01, "tip_force": 0.2},
                          ("tip_position", "bend_angle", "total_bend", "actuator_command", "tip_force_magnitude")),
@@ -394,3 +396,22 @@ PLAIN_RUNS = {
     "Tissue": PlainRun(1.0 / 30.0, 2, TISSUE_COARSE_SIZES, TISSUE_COARSE, {"contact_force": 2e-3},
                        ("strain_energy", "kinetic_energy", "max_strain", "surface_positions")),
 }
+
+
+def default_plain_run(fmu: Path) -> PlainRun:
+    """A legal run of any FMU, made from what its model description declares: three steps of its
+    fixed internal step (else its default experiment's step), its start values (no parameter, no
+    structural parameter and no input set) and every Float64 output read at the end."""
+    from fmpy import read_model_description
+
+    md = read_model_description(str(fmu))
+    step = md.coSimulation.fixedInternalStepSize or (md.defaultExperiment and md.defaultExperiment.stepSize)
+    if step is None:
+        raise ValueError(f"{fmu} declares no fixed internal step and no default step: give it a PlainRun")
+    outputs = tuple(q.name for q in ports(fmu).values() if q.causality == "output" and q.type == "f64")
+    return PlainRun(float(step), 3, {}, {}, {}, outputs)
+
+
+def plain_run(name: str, fmu: Path) -> PlainRun:
+    """The plain run of the FMU ``name`` (the .fmu at ``fmu``): PLAIN_RUNS's, else the default one."""
+    return PLAIN_RUNS[name] if name in PLAIN_RUNS else default_plain_run(fmu)

@@ -4,7 +4,7 @@ duration, read its 1 kHz traces back, and judge them.
 Why a harness of its own: the scripted motions of the shipped scenes are one slow push each, and
 the haptic defects (phantom forces, force steps, alternation, energy created at the port) show up
 under other hands: faster pushes, taps, slides, rolls, dead stops, stiffer devices. This module
-builds the modified scene as a dict from the shipped TOML (``orchestration.scene.loading.scene_from_dict``,
+builds the modified scene as a dict from the shipped TOML (``orchestration.scene.scene_from_dict``,
 nothing monkeypatched), runs it in-process with ``orchestration.run.simulation.run_scene`` and returns a
 :class:`Trace`. The judges return lists of readable violations (time, values, allowance), empty
 when the trace passes, so that a failing test says exactly what happened.
@@ -21,9 +21,11 @@ What is recorded, and why
 - tissue: its scalar outputs (finite?) and its surface at every frame (VTU, every = 1), which the
   phantom judge measures distances against. Rigid scenes take their surface from the source.
 
-The scenes with a Contact FMU are all four shipped ones. ``virtual_wall`` drives a device plant
-with an operator *force*; here its device is replaced by a scripted probe position (the judges
-need a prescribed motion; the device loop's stability is tests/test_haptic_wall.py's business).
+The harness is for every shipped scene that runs the Contact FMU (:func:`contact_scenes`, from
+tests/project.py: all four today), each described in ``CONTACT_SCENES``. ``virtual_wall`` drives
+a device plant with an operator *force*; here its device is replaced by a scripted probe position
+(the judges need a prescribed motion; the device loop's stability is tests/test_haptic_wall.py's
+business).
 """
 from __future__ import annotations
 
@@ -40,8 +42,11 @@ from orchestration.run.simulation import run_scene
 from orchestration.observers.recorder import read_stream
 from fmu_build.paths import SCENE_DIR
 from orchestration.scene.loading import scene_from_dict
+from project import scene_fmus, shipped_scenes
 
 DT = 0.001  # s: the haptic step of every contact scene
+#: the FMU whose rendering the harness judges
+CONTACT_FMU = "Contact"
 
 
 # -------------------------------------------------------------------------------- scene metadata
@@ -80,6 +85,12 @@ CONTACT_SCENES: dict[str, ContactScene] = {
     # speed; depth up to 2.5 mm, where 2 N holds it against 800 N/m
     "virtual_wall": ContactScene("virtual_wall", "probe", "probe", "wall", 0.0, (-0.003, 0.0025), 0.3),
 }
+
+def contact_scenes() -> list[str]:
+    """The shipped scenes that run the contact FMU: those the harness is for (each must have its
+    entry in CONTACT_SCENES)."""
+    return [scene for scene in shipped_scenes() if CONTACT_FMU in scene_fmus(scene)]
+
 
 #: tissue_indentation's sac: the probe moves in the plane z = 0.065 m, radially toward the axis
 SAC_RADIUS = 0.0265

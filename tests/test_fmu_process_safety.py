@@ -14,6 +14,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from project import FMU_NAMES, entry
+
 PROBE = """
 import sys, fmpy
 result = fmpy.simulate_fmu(sys.argv[1], stop_time=float(sys.argv[2]))
@@ -23,7 +25,7 @@ print('rows', len(result), 'time', repr(float(result['time'][-1])))
 RUNS = 30
 COMPILING_RUNS = 4
 #: FMU -> (stop time, rows FMPy records, last time): FMPy's default step (fixedInternalStepSize,
-#: doubled until at most 1000 steps), any stop time
+#: doubled until at most 1000 steps), any stop time; every FMU of the build's table (tests/project.py)
 CASES = {
     "Tissue": (3 / 30, 4, "0.1"),
     "Catheter": (2.0, 1001, "2.0"),  # FMPy steps 2 ms: two internal steps per call
@@ -40,10 +42,10 @@ def _run(fmu, stop_time, cache_dir=None):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(CASES))
-def test_thirty_fresh_processes_exit_normally(name, tissue_fmu, contact_fmu, catheter_fmu, tmp_path):
-    fmu = {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}[name]
-    stop_time, rows, last = CASES[name]
+@pytest.mark.parametrize("name", FMU_NAMES)
+def test_thirty_fresh_processes_exit_normally(name, built_fmu, tmp_path):
+    fmu = built_fmu(name)
+    stop_time, rows, last = entry(CASES, name, "CASES of tests/test_fmu_process_safety.py")
     caches = [tmp_path / f"cache{k}" for k in range(COMPILING_RUNS)]
     jobs = caches + [None] * (RUNS - COMPILING_RUNS)
     with ThreadPoolExecutor(max_workers=2) as pool:

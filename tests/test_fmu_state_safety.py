@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from fmu_harness import fmu_instance
+from project import FMU_NAMES, entry
 from test_fmi_layer import STATE_CASES, _drive
 
 TESTS = Path(__file__).resolve().parent
@@ -70,14 +71,15 @@ def _saved(fmu, name, steps=3) -> bytes:
     return data
 
 
-@pytest.fixture(scope="module")
-def all_fmus(tissue_fmu, contact_fmu, catheter_fmu):
-    return {"Tissue": tissue_fmu, "Contact": contact_fmu, "Catheter": catheter_fmu}
+def _driven(name: str) -> str:
+    """``name``, once tests/test_fmi_layer.py's STATE_CASES says how to drive it (_drive)."""
+    entry(STATE_CASES, name, "STATE_CASES of tests/test_fmi_layer.py")
+    return name
 
 
-@pytest.mark.parametrize("name", ["Catheter", "Contact", "Tissue"])
+@pytest.mark.parametrize("name", FMU_NAMES)
 @pytest.mark.usefixtures("model_process")
-def test_a_pickle_in_a_state_runs_nothing_and_is_refused(name, all_fmus, tmp_path):
+def test_a_pickle_in_a_state_runs_nothing_and_is_refused(name, built_fmu, tmp_path):
     marker = tmp_path / "ran"
     evil = pickle.dumps(_Payload(marker))
     old_header = struct.pack("<8siiQddQ", b"AAAFMUS1", 8, 1, 0, 0.0, 1e-3, len(evil))  # the former format
@@ -87,7 +89,7 @@ def test_a_pickle_in_a_state_runs_nothing_and_is_refused(name, all_fmus, tmp_pat
         "a valid frame around a pickle": _frame(evil),
         "a valid frame, a document, then a pickle": _sign({"trees": {}, "arrays": []}, b"") + evil,
     }
-    with fmu_instance(all_fmus[name]) as fmu:
+    with fmu_instance(built_fmu(name)) as fmu:
         fmu.initialize()
         for what, data in candidates.items():
             fmu.expect_error(lambda: fmu.slave.deserializeFMUState(data), "fmi3DeserializeFMUState")
@@ -102,8 +104,8 @@ def test_a_pickle_in_a_state_runs_nothing_and_is_refused(name, all_fmus, tmp_pat
     {"m": [{"o": ["fmu.CatheterFmu", 0, {"d": []}]}, "__init__"]},
     {"m": [{"l": []}, "append"]},
 ])
-def test_a_state_naming_code_outside_the_package_is_refused(node, all_fmus):
-    with fmu_instance(all_fmus["Catheter"]) as fmu:
+def test_a_state_naming_code_outside_the_package_is_refused(node, catheter_fmu):
+    with fmu_instance(catheter_fmu) as fmu:
         document, arrays = _split(_saved(fmu, "Catheter"))
         document["trees"]["adapter_class"] = node
         fmu.expect_error(lambda: fmu.slave.deserializeFMUState(_sign(document, arrays)), "fmi3DeserializeFMUState")
@@ -122,8 +124,8 @@ def test_a_state_naming_code_outside_the_package_is_refused(node, all_fmus):
     ([8, 1, 3, 0.0, 0.002], "internal_step"),         # not the step its parameters give
     ([8, 7, 3, 0.0, 0.001], "layer"),
 ])
-def test_crafted_layer_fields_are_refused_and_nothing_is_set(layer, words, all_fmus):
-    with fmu_instance(all_fmus["Catheter"]) as fmu:
+def test_crafted_layer_fields_are_refused_and_nothing_is_set(layer, words, catheter_fmu):
+    with fmu_instance(catheter_fmu) as fmu:
         document, arrays = _split(_saved(fmu, "Catheter"))
         document["layer"] = layer
         text = json.dumps(document, separators=(",", ":"))  # NaN/Infinity as a forger would write them
@@ -142,16 +144,16 @@ def test_crafted_layer_fields_are_refused_and_nothing_is_set(layer, words, all_f
     (lambda d: d["arrays"][-1][1].__setitem__(0, 10 ** 9), "past the end"),
     (lambda d: d["trees"]["set_counts"].__setitem__("a", 10 ** 6), "malformed"),
 ])
-def test_a_state_of_another_build_or_size_is_refused_with_the_reason(edit, words, all_fmus):
-    with fmu_instance(all_fmus["Catheter"]) as fmu:
+def test_a_state_of_another_build_or_size_is_refused_with_the_reason(edit, words, catheter_fmu):
+    with fmu_instance(catheter_fmu) as fmu:
         document, arrays = _split(_saved(fmu, "Catheter"))
         edit(document)
         fmu.expect_error(lambda: fmu.slave.deserializeFMUState(_sign(document, arrays)), "fmi3DeserializeFMUState",
                          words)
 
 
-def test_a_state_whose_sizes_contradict_its_structural_parameters_is_refused(all_fmus):
-    with fmu_instance(all_fmus["Catheter"]) as fmu:
+def test_a_state_whose_sizes_contradict_its_structural_parameters_is_refused(catheter_fmu):
+    with fmu_instance(catheter_fmu) as fmu:
         document, arrays = _split(_saved(fmu, "Catheter"))
         vr = [v.name for v in fmu.md.modelVariables].index("centerline_positions")
         index = document["trees"]["buffers"]["l"][vr]["a"]
@@ -162,9 +164,9 @@ def test_a_state_whose_sizes_contradict_its_structural_parameters_is_refused(all
 
 @pytest.mark.parametrize("name", ["Catheter", "Tissue"])
 @pytest.mark.usefixtures("model_process")
-def test_single_flipped_bytes_are_refused(name, all_fmus):
+def test_single_flipped_bytes_are_refused(name, built_fmu):
     rng = np.random.default_rng(33)
-    with fmu_instance(all_fmus[name]) as fmu:
+    with fmu_instance(built_fmu(name)) as fmu:
         data = _saved(fmu, name)
         positions = [0, 9, 17, 30, PREFIX.size + 3] + rng.integers(PREFIX.size, len(data), 25).tolist()
         for position in positions:
@@ -183,9 +185,9 @@ def _run_script(script: str, timeout: float = 300) -> subprocess.CompletedProces
                           timeout=timeout, cwd=TESTS)
 
 
-@pytest.mark.parametrize("name", ["Catheter", "Contact", "Tissue"])
+@pytest.mark.parametrize("name", FMU_NAMES)
 @pytest.mark.usefixtures("model_process")
-def test_freed_copied_foreign_and_misplaced_handles_are_refused_not_followed(name, all_fmus):
+def test_freed_copied_foreign_and_misplaced_handles_are_refused_not_followed(name, built_fmu):
     """A copied handle freed twice, a freed state set, a pointer that is no state, and fmusim's
     fmi3FreeFMUState(instance, state): statuses and reasons, never a crash of the importer."""
     script = f"""
@@ -201,9 +203,9 @@ def test_freed_copied_foreign_and_misplaced_handles_are_refused_not_followed(nam
             except FMICallException as exc:
                 return exc.status
 
-        with fmu_instance({str(all_fmus[name])!r}) as fmu:
+        with fmu_instance({str(built_fmu(name))!r}) as fmu:
             fmu.initialize()
-            _drive(fmu, {name!r}, 0, 2)
+            _drive(fmu, {_driven(name)!r}, 0, 2)
             s, c = fmu.slave, fmu.slave.component
             state = s.getFMUState()
             copy = fmi3FMUState(state.value)
@@ -278,30 +280,36 @@ def test_freed_tissue_states_give_their_memory_back(tissue_fmu):
     assert kept < 4 * one, (one, held, kept)
 
 
-@pytest.mark.parametrize("name, step, words", [
-    ("Catheter", 1e5, "at most 100000"),
-    ("Contact", 1e4, "at most 100000"),
-    ("Tissue", 3e4, "at most 1800"),
-])
-def test_a_call_that_would_run_for_minutes_is_refused_with_the_limit(name, step, words, all_fmus):
-    with fmu_instance(all_fmus[name]) as fmu:
+#: FMU -> (a communication step that would run for minutes, the limit its refusal names), for every
+#: FMU of the build's table (tests/project.py)
+LONG_STEPS = {
+    "Catheter": (1e5, "at most 100000"),
+    "Contact": (1e4, "at most 100000"),
+    "Tissue": (3e4, "at most 1800"),
+}
+
+
+@pytest.mark.parametrize("name", FMU_NAMES)
+def test_a_call_that_would_run_for_minutes_is_refused_with_the_limit(name, built_fmu):
+    step, words = entry(LONG_STEPS, name, "LONG_STEPS of tests/test_fmu_state_safety.py")
+    with fmu_instance(built_fmu(name)) as fmu:
         fmu.initialize()
         fmu.expect_step_error(0.0, step, "split the communication step", words)
         h = float(fmu.md.coSimulation.fixedInternalStepSize)
         fmu.slave.doStep(0.0, h)  # refused, not failed: the instance goes on
 
 
-@pytest.mark.parametrize("name", ["Catheter", "Contact", "Tissue"])
+@pytest.mark.parametrize("name", FMU_NAMES)
 @pytest.mark.usefixtures("model_process")
-def test_instantiating_again_after_the_extraction_folder_was_deleted_is_refused_not_a_crash(name, all_fmus):
+def test_instantiating_again_after_the_extraction_folder_was_deleted_is_refused_not_a_crash(name, built_fmu):
     """FMPy frees the library with the instance; the same slave instantiated again after its folder
     was deleted used to jump into the unmapped library (SIGSEGV)."""
     result = _run_script(f"""
         import shutil, tempfile
         from fmpy import read_model_description, extract
         from fmpy.fmi3 import FMU3Slave
-        md = read_model_description({str(all_fmus[name])!r})
-        folder = extract({str(all_fmus[name])!r}, tempfile.mkdtemp())
+        md = read_model_description({str(built_fmu(name))!r})
+        folder = extract({str(built_fmu(name))!r}, tempfile.mkdtemp())
         slave = FMU3Slave(guid=md.guid, unzipDirectory=folder, modelIdentifier=md.coSimulation.modelIdentifier,
                           instanceName="first")
         slave.instantiate()
@@ -399,16 +407,16 @@ def _find_key(node, key):
 ])
 @pytest.mark.parametrize("initialized", [True, False])
 def test_a_model_state_that_is_not_the_models_is_refused_and_nothing_is_set(replacement, words, initialized,
-                                                                             all_fmus):
+                                                                             catheter_fmu):
     """Valid bytes whose model part has another kind of value than the model its parameters build
     (a forger's state): refused by fmi3SetFMUState with where it differs; the instance goes on."""
-    with fmu_instance(all_fmus["Catheter"]) as fmu:
+    with fmu_instance(catheter_fmu) as fmu:
         data = _saved(fmu, "Catheter")
         expected = _drive(fmu, "Catheter", 3, 2)
     document, arrays = _split(data)
     pair = _find_key(document["trees"]["adapter_state"], "passive_bend")
     pair[1] = document["trees"]["set_counts"] if replacement == "set_counts" else replacement
-    with fmu_instance(all_fmus["Catheter"], instance_name="other") as fmu:
+    with fmu_instance(catheter_fmu, instance_name="other") as fmu:
         if initialized:
             fmu.initialize()
         state = fmu.slave.deserializeFMUState(_sign(document, arrays))

@@ -39,13 +39,6 @@ _counter = itertools.count()
 
 
 @pytest.fixture(scope="module")
-def fmus_in_repo():
-    from orchestration.app.warmup import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
-
-
-@pytest.fixture(scope="module")
 def workdir(tmp_path_factory, fmus_in_repo):
     """A folder with a few scene files: broken ones and a copy of the cheap scene."""
     root = tmp_path_factory.mktemp("cli_fuzz")
@@ -289,7 +282,7 @@ def test_a_run_that_fails_exits_1_naming_the_fmu_and_keeps_its_results(fmus_in_r
     assert not out.exists()
 
 
-def test_a_reader_that_goes_away_ends_validate_without_a_traceback():
+def test_a_reader_that_goes_away_ends_validate_without_a_traceback(fmus_in_repo):
     """`validate SCENE | head -1`: the pipe closes before the output is written."""
     proc = subprocess.Popen([sys.executable, "-m", "orchestration", "validate", "aaa_endovascular"], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)

@@ -1,9 +1,10 @@
-"""Fuzzing FMI call sequences on the three FMUs, in fresh host processes: FMPy's low-level API and
-the C importer (tests/fuzz_hosts.py, tests/c_host/fmu_host.c --serve), each with the model in the
-host's process and in the FMU's helper process (src/fmi3_layer/remote.h).
+"""Fuzzing FMI call sequences on the project's FMUs, in fresh host processes: FMPy's low-level API
+and the C importer (tests/fuzz_hosts.py, tests/c_host/fmu_host.c --serve), each with the model in
+the host's process and in the FMU's helper process (src/fmi3_layer/remote.h).
 
 Each case is a plain legal run of an FMU (PLAIN_RUNS: configuration, parameters, steps under
-inputs, outputs) with calls inserted that the FMU must refuse where they stand (the wrong mode, an
+inputs, outputs; an FMU without one gets a run made from its model description) with calls
+inserted that the FMU must refuse where they stand (the wrong mode, an
 unknown or wrong-type value reference, more or fewer values than the references hold, a NaN or an
 implausible input, a time jump, a step that is no multiple of the internal step, an output or a
 fixed parameter set in Step Mode...) and legal calls that must change nothing (getters, an FMU
@@ -18,6 +19,11 @@ asserts:
 - no Float64 read after an fmi3OK is NaN or infinite;
 - the outputs at the end are bit-identical to the plain run's in the same host.
 
+The FMUs are those of the build's table (tests/project.py), and the calls are made from the ports
+each one declares (its model description): a String parameter, an input, a structural or a fixed
+parameter, an output is used where the FMU has one, and the calls that need one are left out where
+it has none (the synthetic FMUs of tests/synthetic check that the fuzzer runs on those too).
+
 Cases: the hypothesis profile decides (``ci``: 25 per FMU and host; ``--hypothesis-profile=long``:
 1000). Up to 10 cases share a host process (one instance each, made and freed by the case).
 """
@@ -26,12 +32,13 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fuzz_hosts import ERROR, OK, PLAIN_RUNS, WARNING, ScriptHost, get_command, ports, set_command
+from fuzz_hosts import ERROR, OK, WARNING, ScriptHost, get_command, plain_run, ports, set_command
+from project import FMU_NAMES
 
-FMUS = list(PLAIN_RUNS)
+FMUS = FMU_NAMES
 #: the hosts, each with the model in its own process and in the FMU's helper process
 KINDS = ["fmpy", "c", "fmpy-helper", "c-helper"]
 
@@ -50,54 +57,81 @@ def hosts(fmus, c_host, tmp_path_factory):
 
 # ---- the calls --------------------------------------------------------------------------------------------
 def _first(p, **conditions):
+    """The first port (in the model description's order) with these attributes, or None."""
     for port in p.values():
         if all(getattr(port, k) == v for k, v in conditions.items()):
             return port
-    raise LookupError(conditions)
+    return None
 
 
-def _noise_menus(name: str, p: dict) -> dict[str, list[tuple[str, ...]]]:
-    """Per mode, items of calls to insert: each item is ("refused" | "ok", command, ...)."""
-    run = PLAIN_RUNS[name]
+def _input_port(run, p):
+    """The input the cases misuse: the plain run's first, else the FMU's first Float64 input (or None)."""
+    return p[next(iter(run.inputs))] if run.inputs else _first(p, type="f64", causality="input")
+
+
+def _largest_output(p):
+    outputs = [q for q in p.values() if q.type == "f64" and q.causality == "output"]
+    return max(outputs, key=lambda q: q.size) if outputs else None
+
+
+def _noise_menus(run, p: dict) -> dict[str, list[tuple[str, ...]]]:
+    """Per mode, items of calls to insert: each item is ("refused" | "ok", command, ...). A call
+    that needs a kind of port the FMU does not declare is left out."""
     h = run.step
     scalar_output = _first(p, type="f64", causality="output", size=1)
-    array_output = max((q for q in p.values() if q.type == "f64" and q.causality == "output"), key=lambda q: q.size)
+    array_output = _largest_output(p)
     string_parameter = _first(p, type="str", causality="parameter")
-    fixed_parameter = _first(p, type="f64", causality="parameter", variability="fixed", name="internal_step")
+    fixed_parameter = (_first(p, type="f64", causality="parameter", variability="fixed", name="internal_step")
+                       or _first(p, type="f64", causality="parameter", variability="fixed"))
     structural = _first(p, type="u64", causality="structuralParameter")
-    input_port = p[next(iter(run.inputs))]
+    input_port = _input_port(run, p)
     limited = [q for q in p.values() if q.type == "f64" and q.causality == "input" and q.maximum is not None]
-    too_many = [repr(1e-3)] * (input_port.size + 1)
-    common = [
-        ("refused", "get f64 1 9999"),
-        ("refused", "set f64 1 9999 1.0"),
-        ("refused", f"set f64 1 {scalar_output.vr} 1.0"),  # an output
-        ("refused", "set f64 1 0 1.0"),  # the independent variable
-        ("refused", f"set f64 {len(too_many)} {input_port.vr} {' '.join(too_many)}"),  # more values than it holds
-        ("refused", f"set f64 1 {input_port.vr},{input_port.vr} 0.0"),  # fewer values than the references hold
-        ("refused", f"get i32 1 {scalar_output.vr}"),  # the wrong type
-        ("refused", f"set i32 1 {input_port.vr} 1"),
-        ("refused", f"get str 2 {string_parameter.vr}"),  # more strings than references
-        ("refused", f"get f64 {array_output.size + 1} {array_output.vr}"),
-        ("refused", set_command(input_port, [float("nan")] + [0.0] * (input_port.size - 1))),
-        ("refused", set_command(input_port, [float("-inf")] * input_port.size)),
-        *(("refused", set_command(q, [q.maximum * 10 + 1] * q.size)) for q in limited),  # beyond its limit
-    ]
-    never_here = {
-        "Instantiated": [("refused", f"step 0.0 {h!r}"), ("refused", "terminate"), ("refused", "exit_init"),
-                         ("refused", "exit_config"), ("refused", get_command(scalar_output))],
-        "Initialization": [("refused", "enter_init"), ("refused", "enter_config"), ("refused", f"step 0.0 {h!r}"),
-                           ("refused", "terminate"), ("refused", "exit_config")],
-        "Step": [("refused", "enter_init"), ("refused", "exit_init"), ("refused", "enter_config"),
-                 ("refused", "exit_config"), ("refused", f"set f64 1 {fixed_parameter.vr} {h!r}"),
-                 ("refused", f"set u64 1 {structural.vr} 5"),
-                 ("ok", get_command(array_output)), ("ok", get_command(scalar_output)),
-                 ("ok", "get_state", "roundtrip_state", "set_state", "free_state"),
-                 ("refused", "stale_state"), ("refused", "damaged_state")],
-        "Terminated": [("refused", f"step 0.0 {h!r}"), ("refused", "terminate"), ("refused", "enter_init"),
-                       ("refused", set_command(input_port, [0.0] * input_port.size)),
-                       ("ok", get_command(scalar_output))],
-    }
+    common = [("refused", "get f64 1 9999"), ("refused", "set f64 1 9999 1.0")]
+    if scalar_output:
+        common.append(("refused", f"set f64 1 {scalar_output.vr} 1.0"))  # an output
+    common.append(("refused", "set f64 1 0 1.0"))  # the independent variable
+    if input_port:
+        too_many = [repr(1e-3)] * (input_port.size + 1)
+        common += [("refused", f"set f64 {len(too_many)} {input_port.vr} {' '.join(too_many)}"),  # more values
+                   ("refused", f"set f64 1 {input_port.vr},{input_port.vr} 0.0")]  # fewer than the references hold
+    if scalar_output:
+        common.append(("refused", f"get i32 1 {scalar_output.vr}"))  # the wrong type
+    if input_port:
+        common.append(("refused", f"set i32 1 {input_port.vr} 1"))
+    if string_parameter:
+        common.append(("refused", f"get str 2 {string_parameter.vr}"))  # more strings than references
+    if array_output:
+        common.append(("refused", f"get f64 {array_output.size + 1} {array_output.vr}"))
+    if input_port:
+        common += [("refused", set_command(input_port, [float("nan")] + [0.0] * (input_port.size - 1))),
+                   ("refused", set_command(input_port, [float("-inf")] * input_port.size))]
+    common += [("refused", set_command(q, [q.maximum * 10 + 1] * q.size)) for q in limited]  # beyond its limit
+
+    instantiated = [("refused", f"step 0.0 {h!r}"), ("refused", "terminate"), ("refused", "exit_init"),
+                    ("refused", "exit_config")]
+    if scalar_output:
+        instantiated.append(("refused", get_command(scalar_output)))
+    initialization = [("refused", "enter_init"), ("refused", "enter_config"), ("refused", f"step 0.0 {h!r}"),
+                      ("refused", "terminate"), ("refused", "exit_config")]
+    step = [("refused", "enter_init"), ("refused", "exit_init"), ("refused", "enter_config"),
+            ("refused", "exit_config")]
+    if fixed_parameter:
+        step.append(("refused", f"set f64 1 {fixed_parameter.vr} {h!r}"))
+    if structural:
+        step.append(("refused", f"set u64 1 {structural.vr} 5"))
+    if array_output:
+        step.append(("ok", get_command(array_output)))
+    if scalar_output:
+        step.append(("ok", get_command(scalar_output)))
+    step += [("ok", "get_state", "roundtrip_state", "set_state", "free_state"),
+             ("refused", "stale_state"), ("refused", "damaged_state")]
+    terminated = [("refused", f"step 0.0 {h!r}"), ("refused", "terminate"), ("refused", "enter_init")]
+    if input_port:
+        terminated.append(("refused", set_command(input_port, [0.0] * input_port.size)))
+    if scalar_output:
+        terminated.append(("ok", get_command(scalar_output)))
+    never_here = {"Instantiated": instantiated, "Initialization": initialization, "Step": step,
+                  "Terminated": terminated}
     return {mode: common + items for mode, items in never_here.items()}
 
 
@@ -108,8 +142,7 @@ def _time_noise(run, k: int) -> list[tuple[str, ...]]:
             ("refused", f"step {t!r} {-h!r}"), ("refused", f"step {t!r} 0.0"), ("refused", f"step nan {h!r}")]
 
 
-def plain_case(name: str, p: dict) -> list[tuple[str, str]]:
-    run = PLAIN_RUNS[name]
+def plain_case(run, p: dict) -> list[tuple[str, str]]:
     case = [("plain", "instantiate")] + [("plain", c) for c in run.configure(p) + run.setup(p)]
     case += [("plain", "enter_init"), ("plain", "exit_init")]
     for k in range(run.steps):
@@ -118,10 +151,9 @@ def plain_case(name: str, p: dict) -> list[tuple[str, str]]:
 
 
 @st.composite
-def noisy_cases(draw, name: str, p: dict):
+def noisy_cases(draw, run, p: dict):
     """The plain run with calls inserted that must be refused (or must change nothing) where they stand."""
-    run = PLAIN_RUNS[name]
-    menus = _noise_menus(name, p)
+    menus = _noise_menus(run, p)
 
     def noise(mode, extra=()):
         items = draw(st.lists(st.sampled_from(menus[mode] + list(extra)), max_size=2))
@@ -165,18 +197,19 @@ def check(case, answers) -> list[list[float]]:
 _plain_outputs: dict = {}
 
 
-def plain_outputs(host, name, p):
+def plain_outputs(host, name, run, p):
     key = (host.kind, name)
     if key not in _plain_outputs:
-        case = plain_case(name, p)
+        case = plain_case(run, p)
         _plain_outputs[key] = check(case, host.run([c for _, c in case]))
     return _plain_outputs[key]
 
 
 @pytest.mark.parametrize("name", FMUS)
 def test_plain_runs_give_the_same_numbers_in_fmpy_and_the_c_host(hosts, fmus, name):
-    p = ports(fmus[name], PLAIN_RUNS[name].structural)
-    fmpy, *others = (plain_outputs(hosts[(kind, name)], name, p) for kind in KINDS)
+    run = plain_run(name, fmus[name])
+    p = ports(fmus[name], run.structural)
+    fmpy, *others = (plain_outputs(hosts[(kind, name)], name, run, p) for kind in KINDS)
     for kind, outputs in zip(KINDS[1:], others):
         assert outputs == fmpy, kind
     assert any(x != 0.0 for values in fmpy for x in values)  # the run did something
@@ -185,11 +218,15 @@ def test_plain_runs_give_the_same_numbers_in_fmpy_and_the_c_host(hosts, fmus, na
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("name", FMUS)
 def test_refused_calls_inserted_in_a_legal_run_change_nothing(hosts, fmus, kind, name):
-    p = ports(fmus[name], PLAIN_RUNS[name].structural)
-    host = hosts[(kind, name)]
-    expected = plain_outputs(host, name, p)
+    run = plain_run(name, fmus[name])
+    _refused_calls_change_nothing(hosts[(kind, name)], name, run, ports(fmus[name], run.structural))
 
-    @given(noisy_cases(name, p))
+
+def _refused_calls_change_nothing(host, name, run, p, examples: int | None = None) -> None:
+    expected = plain_outputs(host, name, run, p)
+
+    @_examples(examples)
+    @given(noisy_cases(run, p))
     def case_runs(case):
         answers = host.run([command for _, command in case])
         read = check(case, answers)
@@ -216,28 +253,33 @@ LEADS_TO = {"enter_init": "Initialization", "exit_init": "Step", "enter_config":
 
 
 @st.composite
-def call_sequences(draw, name: str, p: dict):
-    """instantiate, up to 30 calls of any kind with plausible or broken arguments, free."""
-    run = PLAIN_RUNS[name]
+def call_sequences(draw, run, p: dict):
+    """instantiate, up to 30 calls of any kind with plausible or broken arguments, free (calls on
+    kinds of ports the FMU does not declare left out)."""
     h = run.step
-    output = max((q for q in p.values() if q.type == "f64" and q.causality == "output"), key=lambda q: q.size)
+    output = _largest_output(p)
     parameters = [q for q in p.values() if q.causality == "parameter" and q.type in ("f64", "i32")
                   and q.size == 1 and q.name in set(run.parameters) | {"internal_step"}]
     structural = [q for q in p.values() if q.causality == "structuralParameter"]
-    input_name = next(iter(run.inputs))
-    choices = st.one_of(
-        st.sampled_from(["enter_init", "exit_init", "enter_config", "exit_config", "terminate", "reset",
-                         "get_state", "set_state", "free_state", "roundtrip_state", "stale_state", "damaged_state",
-                         get_command(output),
-                         f"get f64 {output.size + 1} {output.vr}", "get f64 1 9999"]),
-        st.builds(lambda k, f: f"step {k * h * f!r} {h!r}", st.integers(0, 8), st.sampled_from([1.0, 1.0, 1.5])),
-        st.builds(lambda x: set_command(p[input_name], x), st.sampled_from([0.0, 1e-3, float("nan"), 1e300])),
-        st.builds(lambda q, f: set_command(q, [float(q.start) * f] if q.type == "f64" else [int(float(q.start) * f)]),
-                  st.sampled_from(parameters), st.sampled_from([1.0, 0.5, -1.0])),
-        st.builds(lambda q, v: set_command(q, [v]), st.sampled_from(structural),
-                  st.sampled_from([0, 10**12] + [int(run.structural.get(q.name, q.start)) for q in structural])),
-    )
-    return ["instantiate"] + draw(st.lists(choices, max_size=30)) + ["free"]
+    input_port = _input_port(run, p)
+    calls = ["enter_init", "exit_init", "enter_config", "exit_config", "terminate", "reset", "get_state", "set_state",
+             "free_state", "roundtrip_state", "stale_state", "damaged_state"]
+    if output:
+        calls += [get_command(output), f"get f64 {output.size + 1} {output.vr}"]
+    calls.append("get f64 1 9999")
+    kinds = [st.sampled_from(calls),
+             st.builds(lambda k, f: f"step {k * h * f!r} {h!r}", st.integers(0, 8), st.sampled_from([1.0, 1.0, 1.5]))]
+    if input_port:
+        kinds.append(st.builds(lambda x: set_command(input_port, x), st.sampled_from([0.0, 1e-3, float("nan"), 1e300])))
+    if parameters:
+        kinds.append(st.builds(lambda q, f: set_command(q, [float(q.start) * f] if q.type == "f64"
+                                                        else [int(float(q.start) * f)]),
+                               st.sampled_from(parameters), st.sampled_from([1.0, 0.5, -1.0])))
+    if structural:
+        kinds.append(st.builds(lambda q, v: set_command(q, [v]), st.sampled_from(structural),
+                               st.sampled_from([0, 10**12] + [int(run.structural.get(q.name, q.start))
+                                                              for q in structural])))
+    return ["instantiate"] + draw(st.lists(st.one_of(kinds), max_size=30)) + ["free"]
 
 
 def _kind_of(command: str, p_by_vr: dict) -> str:
@@ -288,12 +330,16 @@ def test_any_call_sequence_is_answered_by_the_legal_call_table(hosts, fmus, kind
     """Random sequences (errors followed by more calls, resets, states restored into other modes...):
     the host survives, a call illegal in every mode the instance may be in is refused with a reason,
     no call returns fmi3Fatal or fmi3Discard, and no Float64 read after fmi3OK is NaN or infinite."""
-    p = ports(fmus[name], PLAIN_RUNS[name].structural)
-    p_by_vr = {q.vr: q for q in p.values()}
-    host = hosts[(kind, name)]
-    prefix = PLAIN_RUNS[name].configure(p) + PLAIN_RUNS[name].setup(p)  # the coarse Tissue mesh
+    run = plain_run(name, fmus[name])
+    _any_call_sequence_follows_the_table(hosts[(kind, name)], run, ports(fmus[name], run.structural))
 
-    @given(call_sequences(name, p))
+
+def _any_call_sequence_follows_the_table(host, run, p, examples: int | None = None) -> None:
+    p_by_vr = {q.vr: q for q in p.values()}
+    prefix = run.configure(p) + run.setup(p)  # e.g. the coarse Tissue mesh
+
+    @_examples(examples)
+    @given(call_sequences(run, p))
     def sequence_runs(commands):
         commands = commands[:1] + prefix + commands[1:]
         answers = host.run(commands)
@@ -302,3 +348,38 @@ def test_any_call_sequence_is_answered_by_the_legal_call_table(hosts, fmus, kind
                        p_by_vr)
 
     sequence_runs()
+
+
+# ---- the fuzzer on FMUs of other shapes ------------------------------------------------------------------
+#: synthetic FMU -> calls (by their start) its menus must (True) or must not (False) hold: Signal
+#: declares no input, no String and no structural parameter; Echo an input of each type, a String
+#: and a structural parameter
+SHAPES = {"Signal": {"get str": False, "set u64": False, "set i32": False},
+          "Echo": {"get str": True, "set u64": True, "set i32": True}}
+
+
+@pytest.mark.parametrize("name", list(SHAPES))
+def test_the_fuzzer_makes_its_calls_from_the_ports_an_fmu_declares(synthetic_fmus, tmp_path, name):
+    """An FMU without a plain run of its own (a run made from its model description) and without
+    some kinds of ports: the calls use the ports it has, the rules above hold (a few cases each, in
+    the FMPy host)."""
+    fmu = synthetic_fmus[name]
+    run = plain_run(name, fmu)
+    p = ports(fmu, run.structural)
+    menus = _noise_menus(run, p)
+    commands = [command for items in menus.values() for item in items for command in item[1:]]
+    for call, expected in SHAPES[name].items():
+        assert any(c.startswith(call) for c in commands) == expected, (call, commands)
+    host = ScriptHost("fmpy", fmu, tmp_path / "host")
+    try:
+        assert any(x != 0.0 for values in plain_outputs(host, name, run, p) for x in values)
+        _refused_calls_change_nothing(host, name, run, p, examples=5)
+        _any_call_sequence_follows_the_table(host, run, p, examples=5)
+        assert host.cases_run > 5, host.cases_run  # the plain run, then the generated cases
+    finally:
+        host.close()
+
+
+def _examples(examples: int | None):
+    """The profile's number of cases (None), or ``examples``."""
+    return (lambda test: test) if examples is None else settings(max_examples=examples)

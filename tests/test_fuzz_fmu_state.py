@@ -7,7 +7,8 @@ Every case asserts that the importer survives and is answered:
   reason, or restores a state from which steps end in fmi3OK, fmi3Warning or fmi3Error (never a
   crash, a hang or another exception), and the instance restores the genuine state afterwards.
 
-Cases run in this process on Catheter and Contact (a crash fails the run, which is the point).
+Cases run in this process on every FMU of the build's table (tests/project.py) but those in
+LEFT_OUT, which says why (a crash fails the run, which is the point).
 The hypothesis profile decides how many (``ci``: 25 per test; ``--hypothesis-profile=long``: 1000).
 """
 from __future__ import annotations
@@ -21,10 +22,14 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from fmu_harness import FmuInstance
-from test_fmi_layer import _drive
+from project import FMU_NAMES, entry
+from test_fmi_layer import STATE_CASES, _drive
 from test_fmu_state_safety import PREFIX, _sign, _split
 
-NAMES = ["Catheter", "Contact"]
+#: FMUs of the table not fuzzed here, and why
+LEFT_OUT = {"Tissue": "its state is tens of MB (the default wall): a case would take seconds, not milliseconds; "
+                      "tests/test_fmu_state_safety.py damages its bytes"}
+NAMES = sorted(name for name in FMU_NAMES if name not in LEFT_OUT)  # sorted: the cases do not follow the table's order
 
 
 class _Saved(dict):
@@ -33,11 +38,12 @@ class _Saved(dict):
 
 
 @pytest.fixture(scope="module")
-def saved(catheter_fmu, contact_fmu):
+def saved(built_fmu):
     """Per FMU: an initialized instance, the genuine serialized state and the outputs after it."""
     made = _Saved()
-    for name, path in (("Catheter", catheter_fmu), ("Contact", contact_fmu)):
-        fmu = FmuInstance(path, instance_name=f"fuzz_{name}")
+    for name in NAMES:
+        entry(STATE_CASES, name, "STATE_CASES of tests/test_fmi_layer.py (how _drive drives it)")
+        fmu = FmuInstance(built_fmu(name), instance_name=f"fuzz_{name}")
         fmu.initialize()
         _drive(fmu, name, 0, 3)
         state = fmu.slave.getFMUState()

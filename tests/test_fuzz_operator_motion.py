@@ -1,5 +1,6 @@
-"""Fuzzer: random operator motions against every shipped contact scene, every judge of
-tests/operator_motion.py on every case.
+"""Fuzzer: random operator motions against every shipped contact scene (every shipped scene that
+runs the Contact FMU: ``operator_motion.contact_scenes``), every judge of tests/operator_motion.py
+on every case.
 
 A case is a scene, a device stiffness (400, 1000, 3000, 5000 or 10000 N/m) and a random
 piecewise-linear operator path of 1.5 s built from moves at 0.5x-10x the scripted speed, taps at
@@ -35,14 +36,17 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 import operator_motion as om
+from project import entry
 
 STIFFNESSES = (400.0, 1000.0, 3000.0, 5000.0, 10000.0)
 #: s of simulated time per case (a whole number of 30 Hz frames and of 1 ms steps)
 DURATION = 1.5
 #: cases per scene in CI, by the cost of a case here (2 cores, run and judges): 3-6 s for a tissue
 #: scene, 0.5-0.8 s for catheter_tube, 0.4 s for virtual_wall: about 150 s when every case passes
-#: (a failing scene stops at its first failing case)
+#: (a failing scene stops at its first failing case); a contact scene not listed runs as many as
+#: the costliest ones
 CI_EXAMPLES = {"aaa_endovascular": 12, "tissue_indentation": 12, "catheter_tube": 25, "virtual_wall": 25}
+DEFAULT_CI_EXAMPLES = 12
 #: s at rest before the motion (see operator_cases)
 START_REST = 0.1
 #: rad/s: a hand turning the catheter (the scripted scenes do not roll it): the unit of roll speeds
@@ -60,7 +64,8 @@ LONG = _examples()
 
 
 def _settings(scene: str):
-    return settings(max_examples=LONG or CI_EXAMPLES[scene], deadline=None, derandomize=LONG is None,
+    examples = entry(CI_EXAMPLES, scene, "CI_EXAMPLES of tests/test_fuzz_operator_motion.py", DEFAULT_CI_EXAMPLES)
+    return settings(max_examples=LONG or examples, deadline=None, derandomize=LONG is None,
                     database=None, phases=(Phase.explicit, Phase.generate), print_blob=True,
                     suppress_health_check=[HealthCheck.too_slow])
 
@@ -127,14 +132,6 @@ def operator_cases(draw, scene: str):
 
 # -- the test -----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def built(tissue_fmu, contact_fmu, catheter_fmu):
-    """The scenes use fmus/: build them from this checkout first (as tests/test_runs.py does)."""
-    from orchestration.app.warmup import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
-
-
-@pytest.fixture(scope="module")
 def case_log(request, record_testsuite_property):
     """Distinct cases run per scene and which failed (hypothesis replays a failing case once more
     to report it); printed, and recorded as JUnit test-suite properties, when the module is done."""
@@ -186,12 +183,13 @@ SAC_ROLL = pytest.mark.xfail(strict=False, reason="issue 28: a tip pressed deep 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", [pytest.param(scene, marks=SAC_ROLL) if scene == "aaa_endovascular" else scene
-                                   for scene in om.CONTACT_SCENES])
-def test_random_operator_motions_render_a_sound_contact(scene, built, case_log, tmp_path_factory):
+                                   for scene in om.contact_scenes()])
+def test_random_operator_motions_render_a_sound_contact(scene, fmus_in_repo, case_log, tmp_path_factory):
     """Every case completes with a finite tissue, no force step beyond k x the tool's motion, no
     alternation, no unexplained (phantom) force, and a port energy output that agrees with the
     recorded force and motion (the energy of each contact cycle is counted, see the module
     docstring)."""
+    entry(om.CONTACT_SCENES, scene, "CONTACT_SCENES of tests/operator_motion.py")
     cases = case_log.setdefault(scene, {})
 
     @_settings(scene)
@@ -207,6 +205,15 @@ def test_random_operator_motions_render_a_sound_contact(scene, built, case_log, 
         assert not problems, f"{trace.label()}:\n  " + "\n  ".join(problems[:12])
 
     one_case()
+
+
+def test_every_shipped_contact_scene_is_described_to_the_harness():
+    """A shipped scene that runs the Contact FMU is fuzzed above: the harness must know where its
+    contact begins, what the operator moves and how fast (operator_motion.CONTACT_SCENES)."""
+    scenes = om.contact_scenes()
+    assert scenes, "no shipped scene runs the contact FMU: the fuzzer would test nothing"
+    missing = [scene for scene in scenes if scene not in om.CONTACT_SCENES]
+    assert not missing, f"add {missing} to CONTACT_SCENES in tests/operator_motion.py"
 
 
 # -- the judges themselves: each must see what it is for (synthetic traces, no scene run) --------

@@ -33,22 +33,13 @@ from orchestration.scene.text import _COMPONENT_NAME, FILE_NAME, _SCENE_NAME
 from orchestration.scene.model import MAX_RUN_STEPS, MAX_STEP, MIN_STEP, Scene, SceneError
 from fmu_build.paths import SCENE_DIR
 from orchestration.scene.loading import load_scene, scene_from_dict
+from project import shipped_scenes
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = ("aaa_endovascular", "virtual_wall", "tissue_indentation", "catheter_tube")
+SHIPPED = shipped_scenes()
 
+# The shipped scenes name their FMUs by file name, looked up in fmus/ (tests/conftest.py builds them).
 pytestmark = pytest.mark.usefixtures("fmus_in_repo")
-
-
-@pytest.fixture(scope="module")
-def fmus_in_repo():
-    """The shipped scenes name Tissue.fmu etc., looked up in fmus/: build them there if missing."""
-    from fmu_build.specs import available_fmus
-    from fmu_build.package import build_fmu, fmu_is_stale
-
-    for name in available_fmus():
-        if fmu_is_stale(name):
-            build_fmu(name)
 
 
 # -- writing TOML (no writer in the standard library) ----------------------------------------------

@@ -50,13 +50,6 @@ SPAN = {"in-process": 4.0, "out-of-process": 6.0}
 EXIT_FOR = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 
-@pytest.fixture(scope="module")
-def built(tissue_fmu, contact_fmu, catheter_fmu):
-    from orchestration.app.warmup import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
-
-
 def _default_sigint():
     # A background job of a non-interactive shell inherits SIGINT ignored (and Python then keeps
     # ignoring it): give the run the disposition a terminal's foreground job has.
@@ -194,7 +187,7 @@ OUTCOMES: dict[str, int] = {}
        signum=st.sampled_from([signal.SIGINT, signal.SIGTERM]),
        fraction=st.floats(0.0, 1.0),
        group=st.booleans(), again=st.booleans(), with_old=st.booleans())
-def test_a_signal_at_any_moment_stops_the_run_cleanly(built, hosting, signum, fraction, group, again, with_old):
+def test_a_signal_at_any_moment_stops_the_run_cleanly(fmus_in_repo, hosting, signum, fraction, group, again, with_old):
     root = Path(tempfile.mkdtemp(prefix="fuzz_signals_"))
     case = (f"{hosting} {signal.Signals(signum).name} after {fraction * SPAN[hosting]:.3f} s "
             f"group={group} again={again} old={with_old}")
@@ -210,7 +203,7 @@ def test_a_signal_at_any_moment_stops_the_run_cleanly(built, hosting, signum, fr
     print(f"signal case passed: {case}: {outcome}", flush=True)
 
 
-def test_the_fuzzer_reached_both_ends(built):
+def test_the_fuzzer_reached_both_ends(fmus_in_repo):
     """The delays are meant to cover an interrupted run and a finished one; say so if they did not."""
     if not OUTCOMES:
         pytest.skip("run together with the fuzzer")
@@ -218,7 +211,7 @@ def test_the_fuzzer_reached_both_ends(built):
     assert OUTCOMES.get("interrupted", 0) > 0
 
 
-def test_a_second_run_into_the_same_out_is_refused(built, tmp_path):
+def test_a_second_run_into_the_same_out_is_refused(fmus_in_repo, tmp_path):
     out = tmp_path / "out"
     first = start_run(out, "out-of-process", 30.0)
     try:
@@ -246,7 +239,7 @@ def test_a_second_run_into_the_same_out_is_refused(built, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.interrupted"]
 
 
-def test_a_stale_lock_of_a_dead_run_is_taken_over_with_a_note(built, tmp_path):
+def test_a_stale_lock_of_a_dead_run_is_taken_over_with_a_note(fmus_in_repo, tmp_path):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     pid = int(dead.stdout)
     (tmp_path / "out.lock").write_text(f"{pid}\n")
@@ -258,7 +251,7 @@ def test_a_stale_lock_of_a_dead_run_is_taken_over_with_a_note(built, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
-def test_a_stopped_worker_ends_the_run_as_failed_after_the_scene_timeout(built, tmp_path):
+def test_a_stopped_worker_ends_the_run_as_failed_after_the_scene_timeout(fmus_in_repo, tmp_path):
     out = tmp_path / "out"
     proc = start_run(out, "out-of-process", 60.0, "--set", "scene.worker_timeout=1.5")
     worker = None
@@ -329,7 +322,7 @@ def _unusable_out_cases(tmp_path: Path):
     yield "a folder of other files", notes, "holds files that are not results of a run (thesis.tex)"
 
 
-def test_an_unusable_out_is_refused_before_the_run(built, tmp_path):
+def test_an_unusable_out_is_refused_before_the_run(fmus_in_repo, tmp_path):
     for label, out, message in _unusable_out_cases(tmp_path):
         before = sorted(p.name for p in tmp_path.rglob("*"))
         proc = subprocess.run([sys.executable, "-m", "orchestration", "run", SCENE, "--duration", "0.1",
@@ -341,7 +334,7 @@ def test_an_unusable_out_is_refused_before_the_run(built, tmp_path):
         assert sorted(p.name for p in tmp_path.rglob("*")) == before, label  # nothing written, nothing removed
 
 
-def test_a_read_only_out_is_refused_and_its_results_kept(built, tmp_path, monkeypatch, capsys):
+def test_a_read_only_out_is_refused_and_its_results_kept(fmus_in_repo, tmp_path, monkeypatch, capsys):
     """chmod 555 on OUT. Root writes everywhere, so as root the permission check is made to see
     what an ordinary user's would (os.access says no); otherwise it is the real thing, in a
     subprocess."""
@@ -373,7 +366,7 @@ def test_a_read_only_out_is_refused_and_its_results_kept(built, tmp_path, monkey
         out.chmod(0o755)
 
 
-def test_a_library_run_stops_cleanly_on_sigint_then_hands_the_keyboardinterrupt_on(built, tmp_path):
+def test_a_library_run_stops_cleanly_on_sigint_then_hands_the_keyboardinterrupt_on(fmus_in_repo, tmp_path):
     """run_scene() from Python, in the main thread: Ctrl-C stops the run between ticks, its results
     and summary are written, and then the caller (a study's loop) gets its KeyboardInterrupt."""
     import threading

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from fmu_build import kernels, package, specs
+from fmu_build import kernels, package
 from fmu_build.errors import BuildError
 from orchestration import blocks
 from orchestration.app import warmup
@@ -22,9 +22,9 @@ from orchestration.scene.loading import load_scene
 from orchestration.scene.model import SceneError
 from orchestration.scene.text import nesting_problem
 from orchestration.hosts.description import PortInfo
+from project import FMU_NAMES, fmu_spec, scene_path, shipped_scenes
 
 ROOT = Path(__file__).resolve().parents[1]
-FMUS = ROOT / "fmus"
 
 
 def _python(code: str, timeout: float = 30, memory: int = 2 << 30) -> subprocess.CompletedProcess:
@@ -50,17 +50,17 @@ def test_deeply_dotted_key_is_refused_before_the_toml_parser(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "REFUSED" in proc.stdout and "nested too deeply" in proc.stdout and "line 1" in proc.stdout
     # and the scenes of the project are not deeper than allowed
-    for toml in (ROOT / "scenes").glob("*.toml"):
-        assert nesting_problem(toml.read_text()) is None, toml
+    for name in shipped_scenes():
+        assert nesting_problem(scene_path(name).read_text()) is None, name
 
 
 # 2 ------------------------------------------------------------------------------------------------
-def test_control_characters_in_scene_strings_are_refused_naming_the_key(tmp_path):
+def test_control_characters_in_scene_strings_are_refused_naming_the_key(fmus_in_repo, tmp_path):
     text = (ROOT / "scenes" / "virtual_wall.toml").read_text()
     assert 'tool = "probe"' in text
     path = tmp_path / "virtual_wall.toml"
     path.write_text(text.replace('tool = "probe"', 'tool = "probe\\u0000garbage"'))
-    shutil.copy(FMUS / "Contact.fmu", tmp_path / "Contact.fmu")
+    shutil.copy(fmus_in_repo["Contact"], tmp_path / "Contact.fmu")
     with pytest.raises(SceneError) as info:
         load_scene(path)
     message = str(info.value)
@@ -120,14 +120,14 @@ def test_implausible_output_makes_a_warning_and_a_count():
 def test_unwritable_fmu_folder_is_a_build_error_naming_it(tmp_path):
     blocker = tmp_path / "not_a_folder"
     blocker.write_text("")
-    spec = next(iter(specs.FMU_SPECS.values()))
+    spec = fmu_spec(FMU_NAMES[0])
     with pytest.raises(BuildError) as info:
         package.build_fmu_from_spec(spec, dest=blocker / "fmus")
     assert "cannot write" in str(info.value) and str(blocker) in str(info.value)
 
 
-def test_damaged_numba_cache_names_the_folder_to_delete(tmp_path, monkeypatch):
-    spec = next(iter(specs.FMU_SPECS.values()))
+def test_damaged_numba_cache_names_the_folder_to_delete(fmus_in_repo, tmp_path, monkeypatch):
+    spec = fmu_spec(FMU_NAMES[0])
     folder = tmp_path / kernels.kernel_cache_folders(spec)[0]  # a folder the FMU's kernels load from
     folder.mkdir()
     assert kernels.numba_cache_damage(tmp_path) is None
@@ -140,8 +140,8 @@ def test_damaged_numba_cache_names_the_folder_to_delete(tmp_path, monkeypatch):
 
 
 # 6 ------------------------------------------------------------------------------------------------
-def test_truncated_fmu_binary_is_refused_before_loading(tmp_path):
-    good = FMUS / "Contact.fmu"
+def test_truncated_fmu_binary_is_refused_before_loading(fmus_in_repo, tmp_path):
+    good = fmus_in_repo["Contact"]
     member = f"binaries/{fmi3.platform_tuple()}/Contact.so"
     with zipfile.ZipFile(good) as archive:
         data = archive.read(member)
@@ -172,7 +172,7 @@ def test_truncated_fmu_binary_is_refused_before_loading(tmp_path):
     assert "truncated" in str(info.value) and str(broken) in str(info.value)
 
 
-def test_device_driven_to_metres_away_warns_in_the_summary(tmp_path):
+def test_device_driven_to_metres_away_warns_in_the_summary(fmus_in_repo, tmp_path):
     """The virtual wall scene with the operator pulling at 20 N away from the wall for 2 s: the
     device plant's position runs to tens of metres; the run completes but its summary says so."""
     from orchestration.run.simulation import run_scene
@@ -182,7 +182,7 @@ def test_device_driven_to_metres_away_warns_in_the_summary(tmp_path):
               "[0.0, 0.0, 0.0]]")
     assert pushes in text
     (tmp_path / "wall.toml").write_text(text.replace(pushes, "[" + ", ".join(["[-20.0, 0.0, 0.0]"] * 6) + "]"))
-    shutil.copy(FMUS / "Contact.fmu", tmp_path / "Contact.fmu")
+    shutil.copy(fmus_in_repo["Contact"], tmp_path / "Contact.fmu")
     summary, _ = run_scene(load_scene(tmp_path / "wall.toml"), tmp_path / "out", progress=False, plots=False,
                            vtu=False)
     assert summary["implausible_outputs"]["count"] >= 1
@@ -190,7 +190,7 @@ def test_device_driven_to_metres_away_warns_in_the_summary(tmp_path):
     assert any("device.position" in line for line in summary["warnings"])
 
 
-def test_unusable_home_skips_the_numba_cache_with_a_warning(monkeypatch, caplog):
+def test_unusable_home_skips_the_numba_cache_with_a_warning(fmus_in_repo, monkeypatch, caplog):
     """No home folder (RuntimeError of Path.home) or one this user may not enter (EACCES, as with
     plain sudo; faked, since the tests may run as root): a warning with the fix, no traceback."""
     def no_home():

@@ -30,9 +30,9 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
-def built(tissue_fmu, contact_fmu, catheter_fmu):
-    """The shipped scenes use fmus/: build them from this checkout first (before each test: a run
-    under a file-size limit or on a tiny volume could not build them)."""
+def built(fmus_in_repo):
+    """The shipped scenes use fmus/ (tests/conftest.py builds them): checked again before each test
+    (a run under a file-size limit or on a tiny volume could not build them)."""
     from orchestration.app.warmup import ensure_fmus_built
 
     ensure_fmus_built(quiet=True)

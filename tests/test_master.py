@@ -234,12 +234,10 @@ def test_a_duration_off_the_step_grid_is_refused_with_the_durations_that_fit(syn
         run_scene(scene, tmp_path / "results", duration=0.05, progress=False)
 
 
-def test_a_scene_object_runs_twice_with_the_same_results(tmp_path):
+def test_a_scene_object_runs_twice_with_the_same_results(fmus_in_repo, tmp_path):
     """Blocks and sources are created per run: the device plant starts from rest both times."""
-    from orchestration.app.warmup import ensure_fmus_built
     from orchestration.scene.loading import load_scene
 
-    ensure_fmus_built(quiet=True)
     scene = load_scene("virtual_wall", {"duration": 0.2})
     files = []
     for k in range(2):
@@ -249,17 +247,15 @@ def test_a_scene_object_runs_twice_with_the_same_results(tmp_path):
     assert files[0] == files[1]
 
 
-def test_a_run_whose_row_writer_dies_keeps_every_row_and_says_so(tmp_path, monkeypatch):
+def test_a_run_whose_row_writer_dies_keeps_every_row_and_says_so(fmus_in_repo, tmp_path, monkeypatch):
     """The row writer process is killed (as by the out-of-memory killer) before the first rows reach
     it: the run's own process writes the rows from then on, none is lost, and the summary and the
     printed text say what happened."""
     import signal
 
-    from orchestration.app.warmup import ensure_fmus_built
     from orchestration.observers.row_writer import RowWriter
     from orchestration.scene.loading import load_scene
 
-    ensure_fmus_built(quiet=True)
     write = RowWriter.write
     killed = []
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import pytest
 
+from project import FMU_NAMES, entry
 from rootfs import c_host_argv, c_host_files, clean_rootfs, run_in_rootfs
 
 pytestmark = pytest.mark.slow
@@ -34,7 +35,8 @@ log = logging.getLogger(__name__)
 
 TIMEOUT = 900.0  # seconds per run: a cold start compiles the FMU's kernels (no cache in a fresh HOME)
 
-# name -> (steps, step size, inputs {name: value}, outputs): the sizes of the ports are read from the
+# name -> (steps, step size, inputs {name: value}, outputs), for every FMU of the build's table
+# (tests/project.py; a missing one fails its tests): the sizes of the ports are read from the
 # FMU's modelDescription.xml. An input is set to value*(1 + k/steps) at step k (fmu_host's ramp), so
 # every output below is non-zero: the tool points, all at (v, v, v), move from inside the default
 # vessel's lumen into its wall (v = 0.0072); at 0.01, say, they never touch it and every output is 0.
@@ -63,7 +65,7 @@ def _float64_sizes(fmu: Path) -> dict[tuple[str, str], int]:
 def _arguments(name: str, fmu: Path, state: bool = False) -> list[str]:
     """fmu_host's arguments (after the program), with the .fmu and the work folder relative to the
     folder it runs in, so that both runs print the very same text."""
-    steps, h, inputs, outputs = CASES[name]
+    steps, h, inputs, outputs = entry(CASES, name, "CASES of tests/test_portable_fmu.py")
     sizes = _float64_sizes(fmu)
     args = [fmu.name, "work", str(steps), repr(h)]
     for port, value in inputs.items():
@@ -111,7 +113,7 @@ def rootfs() -> Path:
     return clean_rootfs()
 
 
-@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("name", FMU_NAMES)
 def test_fmu_alone_on_a_clean_system_gives_the_numbers_of_the_build_machine(rootfs, c_host, fmus, name, tmp_path):
     arguments = _arguments(name, fmus[name])
     here = _timed("on the build machine", name, _run_here, c_host, fmus[name], arguments, tmp_path)
@@ -122,7 +124,7 @@ def test_fmu_alone_on_a_clean_system_gives_the_numbers_of_the_build_machine(root
     assert there.stdout.splitlines() == here.stdout.splitlines(), f"{name} differs on a clean system:{both}"
 
 
-@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("name", FMU_NAMES)
 def test_state_round_trip_on_a_clean_system(rootfs, c_host, fmus, name):
     there = _timed("with --state in the clean root filesystem", name, _run_in_clean_system, rootfs, c_host,
                    fmus[name], _arguments(name, fmus[name], state=True))
@@ -145,11 +147,11 @@ def test_the_clean_system_has_no_python_and_runs_see_no_environment(rootfs):
 def _with_runtime(fmu: Path, out: Path, change) -> Path:
     """A copy of ``fmu`` whose resources/runtime.zip is ``change(bytes)``, everything else as built."""
     with zipfile.ZipFile(fmu) as source, zipfile.ZipFile(out, "w") as copy:
-        for entry in source.infolist():
-            data = source.read(entry)
-            if entry.filename == "resources/runtime.zip":
+        for member in source.infolist():
+            data = source.read(member)
+            if member.filename == "resources/runtime.zip":
                 data = change(data)
-            copy.writestr(entry, data)
+            copy.writestr(member, data)
     return out
 
 

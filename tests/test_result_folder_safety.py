@@ -31,14 +31,6 @@ REPO = Path(__file__).resolve().parent.parent
 CHEAP = ["virtual_wall", "--duration", "0.01", "--no-vtu", "--quiet", "--hosting", "in-process"]
 
 
-@pytest.fixture(scope="module")
-def built():
-    """The shipped scenes load their FMUs' descriptions from fmus/."""
-    from orchestration.app.warmup import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
-
-
 def tree(root: Path) -> dict[str, bytes | None]:
     """Every path under ``root`` (relative) with its bytes (None for a folder or a link)."""
     return {str(p.relative_to(root)): (None if p.is_dir() or p.is_symlink() else p.read_bytes())
@@ -208,7 +200,7 @@ def test_a_symbolic_link_loop_as_out_is_refused(tmp_path, capsys):
     assert loop.is_symlink()
 
 
-def test_a_symbolic_link_out_is_followed_and_stays_a_link(built, tmp_path):
+def test_a_symbolic_link_out_is_followed_and_stays_a_link(fmus_in_repo, tmp_path):
     """The results land in the link's target, the link stays, nothing is left beside the link and
     the next run does not take anything for a killed run."""
     target = tmp_path / "store" / "wall"
@@ -256,7 +248,7 @@ def with_surface(data: dict, name: str) -> dict:
     ("aaa_wall.pvd", "the ParaView collection of [record] surfaces[0]"),
     ("Forces.png", "the figure of [record] plots[0] (the names differ only in case"),
 ])
-def test_a_surface_named_like_another_result_is_a_scene_error(built, name, holder):
+def test_a_surface_named_like_another_result_is_a_scene_error(fmus_in_repo, name, holder):
     problems = problems_of(with_surface(shipped(), name))
     assert len(problems) == 1, problems
     assert problems[0].startswith(f"[record] surfaces[1] name: {name!r} would write its frame folder {name} in the "
@@ -264,7 +256,7 @@ def test_a_surface_named_like_another_result_is_a_scene_error(built, name, holde
     assert problems[0].endswith("; give the surface another name")
 
 
-def test_two_figures_into_one_file_is_a_scene_error(built):
+def test_two_figures_into_one_file_is_a_scene_error(fmus_in_repo):
     data = shipped()
     data["record"]["plots"][1]["file"] = "forces.png"
     assert problems_of(data) == ["[record] plots[1] file: 'forces.png' would write forces.png in the result folder, "
@@ -276,14 +268,14 @@ def test_two_figures_into_one_file_is_a_scene_error(built):
     ("time", "column: tissue records no column 'time'"),
     ("strain_energy[0]", "column: tissue.strain_energy is a single value, its column is 'strain_energy'"),
 ])
-def test_a_plot_of_a_column_its_stream_does_not_record_is_a_scene_error(built, column, fragment):
+def test_a_plot_of_a_column_its_stream_does_not_record_is_a_scene_error(fmus_in_repo, column, fragment):
     data = shipped()
     data["record"]["plots"][1]["panels"][0]["series"][0]["column"] = column
     problems = problems_of(data)
     assert len(problems) == 1 and problems[0].startswith(f"[record] plots[1] panels[0] series[0] {fragment}"), problems
 
 
-def test_plot_columns_of_array_ports_and_their_elements_are_accepted(built):
+def test_plot_columns_of_array_ports_and_their_elements_are_accepted(fmus_in_repo):
     data = shipped()
     series = data["record"]["plots"][0]["panels"][0]["series"]
     series.append({"stream": "contact", "column": "tool_force[2]"})
@@ -293,7 +285,7 @@ def test_plot_columns_of_array_ports_and_their_elements_are_accepted(built):
                                  "contact.tool_force, which has 3 values ([0] to [2])"]
 
 
-def test_a_plot_of_a_stream_that_is_not_recorded_is_a_scene_error(built):
+def test_a_plot_of_a_stream_that_is_not_recorded_is_a_scene_error(fmus_in_repo):
     data = shipped("virtual_wall")
     del data["record"]["device"]
     problems = problems_of(data)
@@ -301,7 +293,7 @@ def test_a_plot_of_a_stream_that_is_not_recorded_is_a_scene_error(built):
                            'device.csv to plot: add device = ["position"] to [record]'), problems
 
 
-def test_every_result_name_problem_is_reported_at_once(built):
+def test_every_result_name_problem_is_reported_at_once(fmus_in_repo):
     data = with_surface(with_surface(shipped(), "summary.json"), "catheter.csv")
     data["record"]["plots"][1]["file"] = "forces.png"
     data["record"]["plots"][0]["panels"][1]["series"][0]["column"] = "bend"
@@ -319,7 +311,8 @@ def scene_file(tmp_path: Path, data_text: str) -> Path:
 
 
 @pytest.mark.parametrize("command", ["validate", "run"])
-def test_validate_and_run_refuse_a_surface_named_units_json_without_a_traceback(built, tmp_path, capsys, command):
+def test_validate_and_run_refuse_a_surface_named_units_json_without_a_traceback(fmus_in_repo, tmp_path, capsys,
+                                                                                command):
     text = (SCENE_DIR / "aaa_endovascular.toml").read_text().replace('name = "aaa_wall"', 'name = "units.json"')
     path = scene_file(tmp_path, text)
     extra = ["--out", str(tmp_path / "out"), "--quiet", "--duration", "0.1"] if command == "run" else []

@@ -21,15 +21,7 @@ from orchestration.scene.loading import load_scene
 REPO = Path(__file__).resolve().parent.parent
 
 
-@pytest.fixture(scope="module")
-def built(tissue_fmu, contact_fmu, catheter_fmu):
-    """The shipped scenes use fmus/: build them from this checkout first."""
-    from orchestration.app.warmup import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
-
-
-def test_catheter_tube_is_deterministic_and_hosting_independent(built, tmp_path):
+def test_catheter_tube_is_deterministic_and_hosting_independent(fmus_in_repo, tmp_path):
     scene = load_scene("catheter_tube", {"duration": 1.6})
     outputs = {}
     for label, hosting in (("a", "in-process"), ("b", "in-process"), ("c", "out-of-process")):
@@ -42,7 +34,7 @@ def test_catheter_tube_is_deterministic_and_hosting_independent(built, tmp_path)
     assert np.max(contact["penetration_depth"]) > 0      # the run really reached the wall
 
 
-def test_tissue_scene_out_of_process_equals_in_process(built, tmp_path):
+def test_tissue_scene_out_of_process_equals_in_process(fmus_in_repo, tmp_path):
     """The 30 Hz tissue steps concurrently with the 1 kHz loop out of process (every FMU in a
     worker, or the scene's own choice: the tissue alone): same numbers as all in process."""
     scene = load_scene("tissue_indentation", {"duration": 0.8})
@@ -60,7 +52,7 @@ def test_tissue_scene_out_of_process_equals_in_process(built, tmp_path):
     assert len(frames) == 1 + 24 // 3                       # the initial frame, then every 3rd of 24 steps
 
 
-def test_main_job_runs_the_default_scene_and_prints_a_summary(built, tmp_path):
+def test_main_job_runs_the_default_scene_and_prints_a_summary(fmus_in_repo, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "orchestration", "run", "--duration", "0.2", "--out", str(tmp_path)],
                           capture_output=True, text=True, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -73,7 +65,7 @@ def test_main_job_runs_the_default_scene_and_prints_a_summary(built, tmp_path):
         assert (tmp_path / name).exists(), name
 
 
-def test_realtime_pacing_counts_missed_deadlines(built, tmp_path):
+def test_realtime_pacing_counts_missed_deadlines(fmus_in_repo, tmp_path):
     scene = load_scene("virtual_wall", {"duration": 0.3})
     start = time.perf_counter()
     summary, text = run_scene(scene, tmp_path, realtime=True, progress=False, plots=False)
@@ -107,7 +99,7 @@ def _wait_for_rows(path: Path, rows: int, timeout: float = 120.0) -> None:
     raise AssertionError(f"{path} did not reach {rows} rows")
 
 
-def test_a_killed_run_keeps_its_results(built, tmp_path):
+def test_a_killed_run_keeps_its_results(fmus_in_repo, tmp_path):
     """SIGKILL: no handler runs; the rows are in OUT.running and the next run keeps them as OUT.killed."""
     out = tmp_path / "out"
     proc = _start_long_run(out)
@@ -136,7 +128,7 @@ def test_a_killed_run_keeps_its_results(built, tmp_path):
     assert not running.exists() and not (tmp_path / "out.lock").exists()
 
 
-def test_sigterm_ends_the_run_with_a_summary(built, tmp_path):
+def test_sigterm_ends_the_run_with_a_summary(fmus_in_repo, tmp_path):
     out = tmp_path / "out"
     proc = _start_long_run(out)
     try:
@@ -158,7 +150,7 @@ def test_sigterm_ends_the_run_with_a_summary(built, tmp_path):
     assert_no_process_left(proc.pid)  # no worker left behind
 
 
-def test_twenty_fresh_processes_run_a_short_scene_and_exit_normally(built, tmp_path):
+def test_twenty_fresh_processes_run_a_short_scene_and_exit_normally(fmus_in_repo, tmp_path):
     def one(i: int):
         out = tmp_path / f"run{i}"
         return subprocess.run([sys.executable, "-m", "orchestration", "run", "catheter_tube", "--duration", "0.05",
@@ -186,7 +178,7 @@ DEFAULT_SCENE_SECONDS = 10.0
 
 
 @pytest.fixture(scope="module", params=[1000.0, 3000.0], ids=["1000N/m", "3000N/m"])
-def default_scene_run(request, built, tmp_path_factory):
+def default_scene_run(request, fmus_in_repo, tmp_path_factory):
     """aaa_endovascular at a desktop device's stiffness, run once per stiffness for the tests below
     (10 s simulated: about 10-15 s here)."""
     out = tmp_path_factory.mktemp(f"aaa_{int(request.param)}")
@@ -214,7 +206,7 @@ def test_default_scene_renders_a_device_stiffness_without_chatter(default_scene_
     assert np.max(np.maximum.accumulate(window) - window) < 0.10 * window.max()
 
 
-def test_a_duration_off_the_step_grid_is_a_usage_error_on_the_command_line(built, tmp_path, capsys):
+def test_a_duration_off_the_step_grid_is_a_usage_error_on_the_command_line(fmus_in_repo, tmp_path, capsys):
     from orchestration.app.cli import EXIT_USAGE, main
 
     assert main(["run", "virtual_wall", "--duration", "0.0015", "--quiet", "--out", str(tmp_path)]) == EXIT_USAGE

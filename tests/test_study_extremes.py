@@ -10,7 +10,8 @@ from orchestration.studies import extremes
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
+def study(tmp_path_factory, fmus_in_repo):
+    """The quick study (its points run scenes whose FMUs are in fmus/)."""
     out = tmp_path_factory.mktemp("study_extremes")
     report = extremes.run(out, quick=True, workers=2, progress=False)
     with open(out / "extremes.csv", newline="") as handle:

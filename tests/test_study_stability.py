@@ -13,7 +13,8 @@ from orchestration.studies.sweep import load_results
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
+def study(tmp_path_factory, fmus_in_repo):
+    """The quick study (its points run shipped scenes, whose FMUs are in fmus/)."""
     out = tmp_path_factory.mktemp("study_stability")
     report = stability.run(out, quick=True, workers=2, progress=False)
     results = [r for r in load_results(out / "points.jsonl")]
@@ -54,8 +55,9 @@ def test_empirical_boundary_matches_colgate_schenkel(study):
         assert r.values["b_crit"] == pytest.approx(r.values["b_crit_discrete_model"], rel=0.02)
 
 
-def test_hold_growth_changes_sign_at_the_bound():
-    # 10 % either side of the bound: the oscillation grows (or leaves the wall) / decays
+def test_hold_growth_changes_sign_at_the_bound(fmus_in_repo):
+    # 10 % either side of the bound: the oscillation grows (or leaves the wall) / decays (runs of the
+    # shipped virtual_wall scene, whose Contact FMU is in fmus/)
     K, B, T = 800.0, 0.5, 1e-3
     bound = K * T / 2 + B
     below = stability.hold_growth(K, B, 0.9 * bound, T, stability.light_mass(K, B, T), 400)

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 from orchestration.studies import tradeoff
-from orchestration.studies.tradeoff import (
-    closest_points_on_triangles, displacement_on_reference, pareto_front, surface_of_level)
+from orchestration.studies.tradeoff import closest_points_on_triangles, displacement_on_reference, pareto_front, surface_of_level
 
 
 # --- helpers against slow references -----------------------------------------------------------
@@ -77,10 +76,7 @@ def test_pareto_front_against_brute_force():
 # --- the quick study ---------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def quick_study(tmp_path_factory):
-    from orchestration.app.warmup import ensure_fmus_built
-
-    ensure_fmus_built(quiet=True)
+def quick_study(tmp_path_factory, fmus_in_repo):
     out = tmp_path_factory.mktemp("study_tradeoff")
     report = tradeoff.run(out, quick=True, workers=2, progress=False)
     with open(out / "tradeoff.csv") as handle:
