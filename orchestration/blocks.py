@@ -20,13 +20,13 @@ import bisect
 import csv
 import logging
 import math
-import numbers
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from orchestration.checks import is_int, is_real
 from orchestration.hosts.description import MAX_PORT_VALUES, PortInfo
 
 try:
@@ -60,23 +60,8 @@ class BlockConfigError(ValueError):
 # ---------------------------------------------------------------------------------- value checks
 # Each checker appends readable problems to `problems` and returns the clean value (or None).
 
-def _is_real(value) -> bool:
-    """A number a float can hold: TOML integers have no size limit, and 10**400 overflows a float."""
-    if not isinstance(value, numbers.Real) or isinstance(value, (bool, np.bool_)):
-        return False
-    try:
-        float(value)
-    except OverflowError:
-        return False
-    return True
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-
-
 def _real(problems, key, value, fix, *, low=None, strict=True):
-    if not (_is_real(value) and math.isfinite(value)):
+    if not (is_real(value) and math.isfinite(value)):
         problems.append(f"{key} must be a finite number (got {value!r}): {fix}")
         return None
     value = float(value)
@@ -87,7 +72,7 @@ def _real(problems, key, value, fix, *, low=None, strict=True):
 
 
 def _int(problems, key, value, fix, *, low=1):
-    if not _is_int(value) or value < low:
+    if not is_int(value) or value < low:
         problems.append(f"{key} must be an integer >= {low} (got {value!r}): {fix}")
         return None
     return int(value)
@@ -102,7 +87,7 @@ def _vector(problems, key, value, n, fix):
     except (TypeError, ValueError):
         arr = None
     if arr is None or arr.shape != (n,) or isinstance(value, (str, bytes)) or (
-            not isinstance(value, np.ndarray) and not all(_is_real(v) for v in value)):
+            not isinstance(value, np.ndarray) and not all(is_real(v) for v in value)):
         problems.append(f"{key} must be a list of {n} numbers (got {value!r}): {fix}")
         return None
     if not np.isfinite(arr).all():
@@ -131,7 +116,7 @@ def _units(problems, key, value, names):
 
 
 def _check_finite_t(t) -> float:
-    if not (_is_real(t) and math.isfinite(t)):
+    if not (is_real(t) and math.isfinite(t)):
         raise ValueError(f"t must be a finite time in s (got {t!r})")
     return float(t)
 
@@ -162,7 +147,7 @@ def _check_times(problems, times, key="times"):
     if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
         problems.append(f"{key} must be a list of knot times in s (got {times!r}), e.g. [0.0, 1.0, 3.0]")
         return None
-    t = [float(v) if _is_real(v) else math.nan for v in times]
+    t = [float(v) if is_real(v) else math.nan for v in times]
     bad = [i for i, v in enumerate(t) if not math.isfinite(v)]
     if len(t) == 0:
         problems.append(f"{key} must hold at least one time (got an empty list)")
@@ -196,9 +181,9 @@ def _check_outputs(problems, outputs, n_times, key="outputs"):
             continue
         rows, kinds, ok = [], set(), True
         for i, v in enumerate(values):
-            scalar = _is_real(v)
+            scalar = is_real(v)
             row = [v] if scalar else (list(v) if hasattr(v, "__len__") and not isinstance(v, (str, bytes)) else None)
-            if row is None or not row or not all(_is_real(x) and math.isfinite(x) for x in row):
+            if row is None or not row or not all(is_real(x) and math.isfinite(x) for x in row):
                 problems.append(f"{where}[{i}] must be a finite number or a list of finite numbers (got {v!r})")
                 ok = False
                 break
@@ -571,15 +556,15 @@ def _check_surface(problems, shape, given: dict) -> dict:
             normal = None
         out["normal"] = normal
         size = opts["size"]
-        size = [size, size] if _is_real(size) else size
+        size = [size, size] if is_real(size) else size
         size = _vector(problems, "size", size, 2, "give the side length in m, or [length_u, length_v], e.g. 0.1")
         if size is not None and not (size > 0).all():
             problems.append(f"size must be > 0 (got {opts['size']!r}): give side lengths in m, e.g. 0.1")
             size = None
         out["size"] = size
         div = opts["divisions"]
-        div = [div, div] if _is_int(div) else div
-        if not (isinstance(div, (list, tuple)) and len(div) == 2 and all(_is_int(d) and d >= 1 for d in div)):
+        div = [div, div] if is_int(div) else div
+        if not (isinstance(div, (list, tuple)) and len(div) == 2 and all(is_int(d) and d >= 1 for d in div)):
             problems.append(f"divisions must be an integer >= 1 or a list of two (got {opts['divisions']!r}): "
                             f"cells per side, e.g. 10")
             div = None
@@ -835,7 +820,7 @@ class DevicePlant:
 
     def enter_initialization(self, start_time: float) -> None:
         self._require(("instantiated",), "enterInitializationMode", start_time)
-        if not (_is_real(start_time) and math.isfinite(start_time)):
+        if not (is_real(start_time) and math.isfinite(start_time)):
             raise FmuCallError(self.name, "enterInitializationMode", None,
                                f"start_time must be a finite time in s (got {start_time!r})")
         self._start_time = float(start_time)
@@ -876,11 +861,11 @@ class DevicePlant:
     def start_step(self, t: float, h: float, inputs: dict[str, np.ndarray]) -> None:
         self._require(("stepping",), "doStep", t)
         step = self._params["step"]
-        if not (_is_real(h) and math.isclose(h, step, rel_tol=1e-9, abs_tol=0.0)):
+        if not (is_real(h) and math.isclose(h, step, rel_tol=1e-9, abs_tol=0.0)):
             raise FmuCallError(self.name, "doStep", t,
                                f"communication step {h!r} s differs from the plant's step {step!r} s: "
                                f"set the plant's step to the step the scene gives it (or the other way round)")
-        if not (_is_real(t) and math.isclose(t, self._time, rel_tol=1e-9, abs_tol=1e-12)):
+        if not (is_real(t) and math.isclose(t, self._time, rel_tol=1e-9, abs_tol=1e-12)):
             raise FmuCallError(self.name, "doStep", t,
                                f"step starts at t = {t!r} s but the plant is at t = {self._time!r} s")
         self._set_inputs(inputs, "setFloat64", t)

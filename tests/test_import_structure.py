@@ -138,7 +138,7 @@ def test_every_module_imports(name):
 
 #: The orchestrator's packages along its pipeline (docs/orchestrator.md): each imports only the
 #: packages before it (and the FMU build, which imports nothing of the orchestrator).
-LAYERS = ("fmu_build", "orchestration.errors", "orchestration.stopping", "orchestration.hosts", "orchestration.plan",
+LAYERS = ("fmu_build", "orchestration.checks", "orchestration.errors", "orchestration.stopping", "orchestration.hosts", "orchestration.plan",
           "orchestration.blocks", "orchestration.scene", "orchestration.observers", "orchestration.run",
           "orchestration.studies", "orchestration.app", "orchestration.__main__", "orchestration.studies.__main__")
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from fmu_build.paths import DEFAULT_FMU_DIR as FMU_DIR
 from fmu_build.paths import SCENE_DIR
+from orchestration.checks import is_finite_number
 from orchestration.hosts.description import MAX_PORT_VALUES, NUMERIC_TYPES, read_fmu
 from orchestration.hosts.fmi3 import fmu_binary_problem
 from orchestration.scene.connections import check_algebraic_loops, load_connections, parse_endpoint
@@ -31,7 +32,7 @@ from orchestration.scene.tables import expect_list, expect_table, short_text, un
 from orchestration.scene.text import (
     component_name_problem, control_character_problems, nesting_problem, scene_name_problem, too_deep)
 from orchestration.scene.timing import duration_problem, format_time, parse_time, run_size_problem, step_problem
-from orchestration.scene.values import all_finite, check_parameters
+from orchestration.scene.values import check_parameters
 
 
 _SCENE_KEYS = {"name", "description", "duration", "hosting", "realtime", "start_time", "worker_timeout"}
@@ -287,7 +288,7 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
         if step is not None and "internal_step" in ports:
             # the project's FMUs: the scene's step is the model's own rate
             given = parameters.get("internal_step")
-            number = isinstance(given, (int, float)) and not isinstance(given, bool) and all_finite(given)
+            number = isinstance(given, (int, float)) and not isinstance(given, bool) and is_finite_number(given)
             if given is not None and (not number or abs(float(given) - float(step)) > 1e-12 * float(step)):
                 problems.append(f"{where} parameters.internal_step = {short_text(given)} differs from step = {step_value}; "
                                 "remove the parameter (the master sets it from step)")

@@ -1,10 +1,9 @@
 """Parameter values against the ports an FMU declares: type, size, range."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from orchestration.checks import is_finite_number
 from orchestration.hosts.description import INTEGER_RANGES, MAX_PORT_VALUES, PortInfo, parse_binary
 from orchestration.scene.tables import short_text
 
@@ -84,20 +83,13 @@ def flat_values(value) -> list:
     return [value]
 
 
-def all_finite(value) -> bool:
-    try:
-        return math.isfinite(value)
-    except OverflowError:  # an integer beyond any float (TOML integers have no size limit)
-        return False
-
-
 def _value_problem(port: PortInfo, value) -> str | None:
     """Why a value of the right type cannot be set: not finite, out of the type's range, or an array
     size beyond MAX_PORT_VALUES (a structural parameter); None if it can."""
     values = flat_values(value)
     numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
     if port.type.startswith("Float"):
-        bad = [v for v in values if not all_finite(v)]
+        bad = [v for v in values if not is_finite_number(v)]
         if bad:
             return f"{short_text(bad[0])} is not a finite number; the FMU computes with it (give a finite value)"
     elif port.type in INTEGER_RANGES and port.type != "Enumeration":
