@@ -6,9 +6,13 @@ import math
 import numpy as np
 import pytest
 
-from orchestration.blocks import (
-    BLOCK_KINDS, REQUIRED, BlockConfigError, CsvSource, DevicePlant, FmuCallError, PiecewiseLinearSource,
-    RigidSurfaceSource, block_options, exact_step_factors, make_block)
+from orchestration.blocks.registry import BLOCK_KINDS, REQUIRED, block_options, make_block
+from orchestration.blocks.options import BlockConfigError
+from orchestration.blocks.csv_source import CsvSource
+from orchestration.blocks.plant import DevicePlant, exact_step_factors
+from orchestration.errors import FmuCallError
+from orchestration.blocks.sources import PiecewiseLinearSource
+from orchestration.blocks.surfaces import RigidSurfaceSource
 
 TIMES = [0.0, 0.5, 2.0, 3.0]
 INSERTION = [0.0, 0.01, 0.05, 0.05]
@@ -514,7 +518,7 @@ def test_block_options_documented_and_match_constructor_defaults():
 
 def test_piecewise_linear_evaluate_on_floats_equals_the_array_formula_bitwise():
     """evaluate() computes on plain floats for speed; the values must be the array formula's, bit for bit."""
-    from orchestration.blocks import PiecewiseLinearSource
+    from orchestration.blocks.sources import PiecewiseLinearSource
 
     rng = np.random.default_rng(7)
     times = np.cumsum(rng.uniform(0.01, 0.3, 12))

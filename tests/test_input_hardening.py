@@ -15,7 +15,7 @@ import pytest
 
 from fmu_build import kernels, package
 from fmu_build.errors import BuildError
-from orchestration import blocks
+from orchestration.blocks import csv_source
 from orchestration.app import warmup
 from orchestration.hosts import fmi3
 from orchestration.scene.loading import load_scene
@@ -76,7 +76,7 @@ def test_broken_csv_signal_is_a_problem_naming_file_and_line(tmp_path):
         path = tmp_path / "signal.csv"
         path.write_bytes(content)
         problems: list[str] = []
-        blocks._read_csv(problems, path, {"force": ["f"]}, "t")
+        csv_source.read_csv(problems, path, {"force": ["f"]}, "t")
         assert len(problems) == 1, problems
         assert str(path) in problems[0]
         return problems[0]
@@ -84,11 +84,11 @@ def test_broken_csv_signal_is_a_problem_naming_file_and_line(tmp_path):
     assert "line 3" in read(b"t,f\n0,1\n1,\x002\n") and "NUL" in read(b"t,f\n0,1\n1,\x002\n")
     huge = read(b't,f\n0,1\n1,"' + b"9" * 200_000 + b"\n")  # an unclosed quote: one field past csv's limit
     assert "line" in huge and "field" in huge
-    assert "longer than" in read(b"t,f\n" + b"1" * (blocks.CSV_MAX_LINE + 10))
+    assert "longer than" in read(b"t,f\n" + b"1" * (csv_source.CSV_MAX_LINE + 10))
     folder = tmp_path / "folder.csv"
     folder.mkdir()
     problems: list[str] = []
-    blocks._read_csv(problems, folder, {"force": ["f"]}, "t")  # exists, cannot be read as a file
+    csv_source.read_csv(problems, folder, {"force": ["f"]}, "t")  # exists, cannot be read as a file
     assert problems and str(folder) in problems[0]
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from orchestration.blocks import PLANT_MAX_POSITION, PLANT_MAX_SPEED
+from orchestration.blocks.plant import PLANT_MAX_POSITION, PLANT_MAX_SPEED
 
 
 # -- physical plausibility of the outputs ------------------------------------------------------------

@@ -310,7 +310,8 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
 
 def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, overrides: dict,
                  problems: list[str]) -> None:
-    from orchestration.blocks import BlockConfigError, make_block
+    from orchestration.blocks.options import BlockConfigError
+    from orchestration.blocks.registry import make_block
 
     for name, table in tables.items():
         where = f"[{section}.{name}]"

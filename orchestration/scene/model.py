@@ -83,7 +83,7 @@ class ComponentSpec:
 
     def new_block(self):
         """A fresh instance of a block or source (each run gets its own: a scene is data)."""
-        from orchestration.blocks import make_block
+        from orchestration.blocks.registry import make_block
 
         return make_block(self.name, self.table, self.base_dir)
 

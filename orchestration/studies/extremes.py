@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from fmu_build.paths import DEFAULT_FMU_DIR
-from orchestration.blocks import PLANT_LIMITS
+from orchestration.blocks.plant import PLANT_LIMITS
 from orchestration.run.status import RunStatus
 from orchestration.studies.common import run_point, write_table
 
@@ -455,7 +455,7 @@ def _run_haptic(point: dict) -> dict:
 # -- NaN from a misconfigured source ---------------------------------------------------------------
 
 def _run_nan_runtime(point: dict) -> dict:
-    # the lightest mass the plant accepts (blocks.PLANT_LIMITS; 1e-300 is refused at load): 1e308 N
+    # the lightest mass the plant accepts (blocks.plant.PLANT_LIMITS; 1e-300 is refused at load): 1e308 N
     # over it still overflows the position to Inf/NaN, which the run must name
     overrides = {"device.mass": PLANT_LIMITS["mass"][0], "operator.times": [0.0, 0.05],
                  "operator.outputs": {"force": [[0.0, 0.0, 0.0], [1e308, 0.0, 0.0]]}}
