@@ -20,7 +20,7 @@ they came from. Byte code is compiled with unchecked hashes, because importers e
 without keeping file times and a checked ``.pyc`` would be compiled again on every load.
 
 The runtime is built once per Python, package set and version (``build/runtime-<digest>``) and
-copied into each FMU by ``build.py``.
+copied into each FMU by ``package.py``.
 """
 from __future__ import annotations
 

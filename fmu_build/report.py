@@ -11,6 +11,7 @@ from pathlib import Path
 from .errors import BuildError
 from .package import has_entries
 
+
 def fmu_contents(fmu: Path) -> str:
     """What an FMU holds, in megabytes (as stored in the archive): its runtime and the rest."""
     with zipfile.ZipFile(fmu) as archive:

@@ -23,19 +23,19 @@ from fmu_build.package import build_fmu, fmu_is_stale, has_entries
 from fmu_build.paths import DEFAULT_FMU_DIR, REPO_ROOT, SCENE_DIR
 from fmu_build.portable_runtime import prepare_carried_runtime
 from fmu_build.specs import FMU_SPECS, available_fmus
-
 from orchestration.run.compiled_loop import compiled_loop_library
 from orchestration.run.status import RunStatus
 from orchestration.scene.model import Hosting
 
 logger = logging.getLogger(__name__)
 
+
 def add_carried_kernels(fmus: list[Path], quiet: bool = False) -> None:
     """Put into each of the project's FMUs that carries a runtime the kernels compiled for any
     x86-64 CPU (resources/numba_cache): a first load on another machine then loads them instead
     of compiling (Contact: ~30 s). They are compiled by running the default scene once with those
     FMUs, once per version of the sources (the cache is content-addressed, build/numba-carried);
-    an FMU built after that has them already (_write_carried_kernels)."""
+    an FMU built after that has them already (``fmu_build.kernels.write_carried_kernels``)."""
     finish_carried_kernels(start_carried_kernels(fmus, quiet))
 
 

@@ -40,7 +40,6 @@ def exact_in_float64(values: np.ndarray) -> bool:
     return values.dtype.kind == "u" or int(values.min()) >= -EXACT_INTEGER
 
 
-
 @dataclass
 class InputPort:
     """A writable port: its float64 slot and, for other types, the native buffer it is cast to."""

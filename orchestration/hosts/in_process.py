@@ -37,7 +37,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["ComponentHost", "InProcessFmu", "PortConfigurationError", "check_port_lists"]
 
 
-
 @runtime_checkable
 class ComponentHost(Protocol):
     """What the master calls on every stepped component (see prompts/orch_iface.md).

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from orchestration.errors import short_status_name
 
+
 def fmu_messages(messages: list[tuple[str, int, str]]) -> list[dict]:
     """Log messages at warning level and above, as summary entries."""
     return [{"component": comp, "status": short_status_name(status), "message": text}

@@ -10,8 +10,6 @@ from pathlib import Path
 from orchestration.hosts.description import FmuDescription, PortInfo
 
 
-
-
 class Ordering(StrEnum):
     """When a connection's consumer reads its producer: the value at the end of its step (the
     producer steps first) or at its start (both step at once)."""

@@ -162,6 +162,7 @@ def _check_plot_columns(table: dict, record: dict, plots: list, components: dict
                                 f"{', '.join(ports) or 'nothing'}); add {column!r} to [record] {stream} or plot one "
                                 "of those")
 
+
 def _load_surface(where: str, item, components: dict, problems: list[str], declared) -> SurfaceSpec | None:
     if not isinstance(item, dict):
         problems.append(f"{where}: must be a table {{ component, positions, triangles }}")

@@ -46,6 +46,8 @@ def light_mass(K, B, T) -> float:
     A fixed light mass is not enough: with m = 1 mg, K = 500 N/m, T = 0.25 ms (m / (bound T) =
     0.064) the boundary is already 15 % below the bound, in the scene and in the exact model alike."""
     return LIGHT_INERTIA * wall_bound(K, B, T) * T
+
+
 DEVICE_MASS = 0.1               # kg: the scene's desktop device, for the comparison rows
 PERTURBATION = 0.02             # initial offset from equilibrium, fraction of x*
 BISECTION_HALVINGS = 14
