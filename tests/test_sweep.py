@@ -155,7 +155,7 @@ def test_failures_are_recorded_and_the_sweep_goes_on(tmp_path, calls_file, caplo
                                 "modulus in Pa, e.g. 1.044e6")
     for x in (0.0, 7.0):
         assert by_x[x].status == "failed"
-        assert by_x[x].error == "worker process died (signal SIGABRT)"
+        assert by_x[x].error == "worker process died (killed by signal SIGABRT)"
         assert by_x[x].values == {}
     for x in (1.5, 2, 4.25, -1, 3):
         assert by_x[x].status == "ok"
@@ -262,8 +262,8 @@ def test_dask_cluster_gives_the_same_results_as_local(tmp_path):
                            scheduler=cluster.scheduler_address, timeout_s=1.0, progress=False)
     assert _comparable(remote) == _comparable(local)
     assert [r.error for r in remote if r.status == "failed"] == [
-        local[1].error, "worker process died (signal SIGABRT)",
-        "worker process died (signal SIGABRT)", "timed out after 1 s"]
+        local[1].error, "worker process died (killed by signal SIGABRT)",
+        "worker process died (killed by signal SIGABRT)", "timed out after 1 s"]
 
 
 def test_tasks_workers_cannot_import_are_refused_up_front(tmp_path):

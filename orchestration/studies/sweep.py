@@ -5,7 +5,7 @@ one :class:`SweepResult` per point, in the order of ``points``.
 
 How a point runs. Every point runs in a worker *process* (never in the caller), so a point that
 crashes the interpreter (segfault, ``os.abort``) or hangs cannot take the sweep down: the worker
-is replaced, the point is recorded as failed ("worker process died (signal SIGABRT)", "timed out
+is replaced, the point is recorded as failed ("worker process died (killed by signal SIGABRT)", "timed out
 after 60 s") and the sweep goes on. Worker processes are long-lived, one per parallel slot, and
 run point after point, so the task's imports and numba's cached compilation are paid once per
 worker rather than once per point. A worker is a fresh interpreter (``sys.executable``, like the
@@ -52,7 +52,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from fmu_build.paths import REPO_ROOT
-from orchestration.errors import signal_name
+from orchestration.errors import exit_description
 
 logger = logging.getLogger(__name__)
 
@@ -330,11 +330,7 @@ def _preparation_data(task) -> dict:
 
 
 def _death_reason(returncode: int | None) -> str:
-    if returncode is None:
-        return "worker process died (exit status unknown)"
-    if returncode < 0:
-        return f"worker process died (signal {signal_name(-returncode)})"
-    return f"worker process died (exit code {returncode})"
+    return f"worker process died ({exit_description(returncode)})"
 
 
 class _Worker:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._coupling import TOOL_POINTS
-from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, publish, published_outputs, structural
+from ._fmi import FmuDeclaration, Limit, input_port, output, output_publisher, parameter, structural
 from .geometry import CenterlineCurve
 from .model import CatheterModel, CatheterOutputs, CatheterParameterError, CatheterParameters
 
@@ -108,7 +108,8 @@ def _in_fmu_names(message: str) -> str:
 
 
 #: The outputs copied from the model's record after each step (the arrays it writes in place).
-PUBLISHED = published_outputs(VARIABLES, CatheterOutputs, written_in_place=("centerline_positions", "tip_position"))
+publish_outputs = output_publisher(VARIABLES, CatheterOutputs,
+                                   written_in_place=("centerline_positions", "tip_position"))
 
 
 class CatheterFmu:
@@ -143,7 +144,7 @@ class CatheterFmu:
         self._publish(out)
 
     def _publish(self, out) -> None:
-        publish(self.values, out, PUBLISHED)
+        publish_outputs(self.values, out)
 
 
 DECLARATION = FmuDeclaration(

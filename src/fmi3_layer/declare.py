@@ -233,21 +233,23 @@ INTERNAL_STEP_LIMIT = Limit(1e-6, 10.0, "below 1 us a step costs less than the F
                                         "no model of this project is meant to step")
 
 
-def published_outputs(variables, record_type, written_in_place=()) -> tuple[str, ...]:
-    """The outputs an adapter copies from the model's output record after each step: every declared
-    output that is a field of ``record_type`` (a dataclass), except those the model writes into the
-    FMU's buffers itself (``written_in_place``). A declared output that neither covers raises here,
-    when the FMU's package is imported (the build): an output is its declaration plus its field."""
+def output_publisher(variables, record_type, written_in_place=()) -> Callable[[Any, Any], None]:
+    """``publish(values, record)``: copies into the FMU, after each step, every declared output that
+    is a field of the model's output record ``record_type`` (a dataclass), except those the model
+    writes into the FMU's buffers itself (``written_in_place``). A declared output that neither
+    covers raises here, when the FMU's package is imported (the build): an output is its declaration
+    plus its field. The copy is one assignment per output, as written by hand (it runs at 1 kHz: a
+    loop over the names costs 0.4 us more per step)."""
     fields = {f.name for f in dataclasses_fields(record_type)}
     outputs = [v.name for v in variables if v.causality == "output"]
     missing = [name for name in outputs if name not in fields and name not in written_in_place]
     if missing:
         raise ValueError(f"outputs {missing} are declared but {record_type.__name__} has no such field and they "
                          "are not written in place: add the field to the model's outputs")
-    return tuple(name for name in outputs if name in fields and name not in written_in_place)
-
-
-def publish(values, record, names: tuple[str, ...]) -> None:
-    """Copy the outputs ``names`` (see :func:`published_outputs`) from the model's ``record`` into the FMU."""
-    for name in names:
-        setattr(values, name, getattr(record, name))
+    names = [name for name in outputs if name in fields and name not in written_in_place]  # fields: identifiers
+    body = "".join(f"    values.{name} = record.{name}\n" for name in names) or "    pass\n"
+    namespace: dict = {}
+    exec(f"def publish(values, record):\n{body}", namespace)
+    publish = namespace["publish"]
+    publish.__doc__ = f"Copy {', '.join(names) or 'nothing'} from the model's record into the FMU."
+    return publish

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ._coupling import TOOL_POINTS
-from ._fmi import FmuDeclaration, Limit, input_port, output, parameter, publish, published_outputs, structural
+from ._fmi import FmuDeclaration, Limit, input_port, output, output_publisher, parameter, structural
 from .model import ContactModel, ContactOutputs, ContactParameters
 from .rendering import LOCAL_POLICIES
 
@@ -160,8 +160,8 @@ VARIABLES = (
 
 
 #: The outputs copied from the model's record after each step (the arrays it writes in place).
-PUBLISHED = published_outputs(VARIABLES, ContactOutputs,
-                              written_in_place=("tool_force", "tip_force", "tissue_contact_force", "patch_nodes"))
+publish_outputs = output_publisher(VARIABLES, ContactOutputs,
+                                   written_in_place=("tool_force", "tip_force", "tissue_contact_force", "patch_nodes"))
 
 
 class ContactFmu:
@@ -202,7 +202,7 @@ class ContactFmu:
         # copy) wrote this step into its own: bind it to the buffers again (they take this step's values)
         if out.tissue_contact_force is not v.tissue_contact_force:
             model.write_outputs_into(v.tool_force, v.tip_force, v.tissue_contact_force, v.patch_nodes)
-        publish(v, out, PUBLISHED)
+        publish_outputs(v, out)
 
 
 DECLARATION = FmuDeclaration(
