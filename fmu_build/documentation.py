@@ -1,7 +1,67 @@
 """Each FMU's documentation/index.html: what it is and what an importer must provide to run it."""
 from __future__ import annotations
 
+import importlib.util
+import sys
+from html import escape
+from pathlib import Path
+
 from .portable_runtime import CarriedRuntime
+
+#: the contract's file in an FMU's package (``src/fmi3_layer/coupling.py``, linked into each package)
+CONTRACT_FILE = "_coupling.py"
+
+
+def coupling_contract(package_copy: Path, model_name: str) -> dict | None:
+    """The coupling contract of ``model_name`` from the contract the FMU's package carries (None for an
+    FMU without one, such as the test suite's FMUs): ``documentation/coupling.json`` and the HTML section."""
+    path = package_copy / CONTRACT_FILE
+    if not path.is_file():
+        return None
+    name = f"_aaa_cosim_contract_{model_name}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the class is made
+    try:
+        spec.loader.exec_module(module)
+        return module.contract_of(model_name)
+    finally:
+        del sys.modules[name]
+
+
+def _coupling_section(contract: dict) -> str:
+    """The contract as HTML: how a master composes this FMU with the other two."""
+    def rows(links, own_side: str, other_side: str) -> str:
+        return "".join(f"<tr><td><code>{escape(link[own_side].split('.', 1)[1])}</code></td>"
+                       f"<td><code>{escape(link[other_side])}</code></td><td>{escape(link['transition'])}</td>"
+                       f"<td>{escape(link['ordering'] or '-')}</td><td>{escape(link['sees'])}</td></tr>\n"
+                       for link in links)
+    head = "<tr><th>{}</th><th>{}</th><th>transition</th><th>ordering</th><th>the consumer stepping [t, t + h] sees</th></tr>\n"
+    steps = ", ".join(f"{escape(fmu)} {escape(step)} s" for fmu, step in contract["steps"].items())
+    agreements = "".join(f"<li><code>{escape(' = '.join(a['parameters']))}</code>: {escape(a['why'])}</li>\n"
+                         for a in contract["agreements"])
+    rules = "".join(f"<dt>{escape(name)}</dt><dd>{escape(text)}</dd>\n" for name, text in contract["rules"].items())
+    return f"""<h2>Coupling</h2>
+<p>How a master composes this FMU with the project's others into the scene it was made for (what the
+project's orchestrator does; <code>documentation/coupling.json</code> holds the same contract for
+programs). Steps: {steps}, each the FMU's <code>fixedInternalStepSize</code>. <em>hold</em>: the
+producer's latest sample; <em>average</em>: the mean of its samples in the consumer's window;
+<em>gauss-seidel</em>: the producer steps to the end of the consumer's step first; <em>jacobi</em>: the
+consumer sees the producer's samples up to the start of its step. Where this FMU can tell a rule is
+broken it refuses the call and quotes the rule.</p>
+<h3>Inputs</h3>
+<table>
+{head.format("input", "from")}{rows(contract["inputs"], "target", "source")}</table>
+<h3>Outputs to the other FMUs</h3>
+<table>
+{head.format("output", "to")}{rows(contract["outputs"], "source", "target")}</table>
+<h3>Sizes that must agree</h3>
+<ul>
+{agreements}</ul>
+<h3>Rules</h3>
+<dl>
+{rules}</dl>
+"""
 
 
 def _running_with_runtime(runtime: CarriedRuntime) -> str:
@@ -30,7 +90,8 @@ importer's environment caps (a helper process inherits it).</p>
 """
 
 
-def documentation(description: dict, environment: dict, runtime: CarriedRuntime | None) -> str:
+def documentation(description: dict, environment: dict, runtime: CarriedRuntime | None,
+                  contract: dict | None = None) -> str:
     library = environment["libpython"] or "(none: this Python was built without a shared library)"
     running = _running_with_runtime(runtime) if runtime is not None else f"""<h2>Running it</h2>
 <p>This build carries no Python runtime (its Python had no shared library). The model is Python code
@@ -50,5 +111,5 @@ its prefix and <code>PYTHONPATH</code> to a site-packages folder with those pack
 <p>Variables, units and start values: <code>modelDescription.xml</code>. FMI 3.0 Co-Simulation; the
 communication step must be a whole multiple of <code>fixedInternalStepSize</code> (parameter
 <code>internal_step</code>). FMU state can be saved, restored and serialized.</p>
-{running}</body></html>
+{running}{_coupling_section(contract) if contract else ""}</body></html>
 """

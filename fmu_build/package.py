@@ -15,7 +15,7 @@ import zipfile
 from pathlib import Path
 
 from .compiler import HELPER_EXECUTABLE, LAYER_SOURCES, helper_executable, layer_library, source_digest
-from .documentation import documentation
+from .documentation import coupling_contract, documentation
 from .errors import BuildError, unwritable
 from .kernels import write_carried_kernels
 from .paths import DEFAULT_FMU_DIR, LAYER, PLATFORM, SRC
@@ -130,7 +130,10 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
         if runtime is not None:  # importers extract without file modes: the layer sets the x bit itself
             shutil.copy(helper_executable(), binaries / HELPER_EXECUTABLE)
         (root / "documentation").mkdir()
-        (root / "documentation" / "index.html").write_text(documentation(description, environment, runtime))
+        contract = coupling_contract(package_copy, name)
+        (root / "documentation" / "index.html").write_text(documentation(description, environment, runtime, contract))
+        if contract is not None:
+            (root / "documentation" / "coupling.json").write_text(json.dumps(contract, indent=2) + "\n")
         partial = dest / f".{name}.fmu.partial"
         with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as archive:
             for path in sorted(root.rglob("*")):

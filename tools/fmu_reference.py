@@ -50,6 +50,13 @@ def _build_side():
     return FMU_SPECS, add_build_data
 
 
+def module_contract(package_copy: Path, model_identifier: str):
+    """The coupling contract the package carries, as the build reads it (None without one)."""
+    from fmu_build.documentation import coupling_contract
+
+    return coupling_contract(package_copy, model_identifier)
+
+
 # -- reading the declarations (in a fresh interpreter: python tools/fmu_reference.py --declarations) --
 def _start_summary(start, shape: tuple):
     """A JSON-able description of a start value for ``shape`` (resolved dimensions)."""
@@ -116,6 +123,7 @@ def _read_declarations() -> list[dict]:
                 "internal_step": float(decl.internal_step), "stop_time": float(decl.stop_time),
                 "version": decl.version, "max_steps_per_call": int(decl.max_steps_per_call),
                 "variables": rows,
+                "coupling": module_contract(root / spec.package, spec.model_identifier),
             })
     return result
 
@@ -261,7 +269,32 @@ def render_page(decl: dict) -> str:
             cells = [_cell(f"`{v['name']}`"), _cell(f"{v['type']} ({v['variability']})"), _cell(v["unit"] or ""),
                      _cell(_start(v)), _cell(_size(v)), about]
             lines.append("| " + " | ".join(cells) + " |")
+    if decl.get("coupling"):
+        lines += _coupling_lines(decl["coupling"])
     return "\n".join(lines) + "\n"
+
+
+def _coupling_lines(contract: dict) -> list[str]:
+    """The FMU's part of the coupling contract (``src/fmi3_layer/coupling.py``, in the FMU as
+    ``documentation/coupling.json``)."""
+    steps = ", ".join(f"{fmu} {step} s" for fmu, step in contract["steps"].items())
+    lines = ["", "## Coupling", "",
+             "How a master composes this FMU with the other two into the scene it was made for, as the FMU's",
+             "`documentation/index.html` and `documentation/coupling.json` state it (from",
+             "`src/fmi3_layer/coupling.py`; the rules explained: [Coupling of the three FMUs](../coupling.md)).",
+             f"Steps: {steps}. Where the FMU can tell a rule is broken it refuses the call and quotes the rule."]
+    for title, links, own, other in (("Inputs", contract["inputs"], "target", "source"),
+                                     ("Outputs to the other FMUs", contract["outputs"], "source", "target")):
+        lines += ["", f"### {title}", "", f"| {'input' if own == 'target' else 'output'} | "
+                  f"{'from' if own == 'target' else 'to'} | transition | ordering | "
+                  "the consumer stepping [t, t + h] sees |", "|---|---|---|---|---|"]
+        lines += [f"| `{link[own].split('.', 1)[1]}` | `{link[other]}` | {link['transition']} | "
+                  f"{link['ordering'] or '-'} | {_cell(link['sees'])} |" for link in links]
+    lines += ["", "### Sizes that must agree", ""]
+    lines += [f"- `{' = '.join(a['parameters'])}`: {a['why']}" for a in contract["agreements"]]
+    lines += ["", "### Rules", ""]
+    lines += [f"- **{name}**: {text}" for name, text in contract["rules"].items()]
+    return lines
 
 
 def render(decls: list[dict]) -> dict[Path, str]:

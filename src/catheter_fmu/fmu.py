@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._coupling import TOOL_POINTS
+from ._coupling import TOOL_POINTS, size_rules
 from ._fmi import FmuDeclaration, Limit, input_port, output, output_publisher, parameter, structural
 from .geometry import CenterlineCurve
 from .model import CatheterModel, CatheterOutputs, CatheterParameterError, CatheterParameters
@@ -154,4 +154,5 @@ DECLARATION = FmuDeclaration(
     variables=VARIABLES,
     adapter=CatheterFmu,
     limits=LIMITS,
+    size_rules=size_rules("Catheter"),
 )

@@ -205,15 +205,25 @@ class FmuDeclaration:
     extra_units: tuple[str, ...] = field(default=())
     #: the FMU's limit table: variable name -> its plausible range (one place for each limit)
     limits: dict[str, Limit] = field(default_factory=dict)
+    #: structural parameter -> the coupling rule its value follows (another FMU's size it must equal),
+    #: quoted when an importer gives an array it sizes the wrong number of values
+    size_rules: dict[str, str] = field(default_factory=dict)
     #: the most internal steps one fmi3DoStep may run: a C importer cannot interrupt a call, so
     #: one that would take minutes is refused (with this number) instead of started
     max_steps_per_call: int = 100_000
+    #: whether fmi3GetFMUState can save the model (its adapter's attributes survive ``copy.deepcopy``);
+    #: False: canGetAndSetFMUState and canSerializeFMUState are false, and a call is refused saying why
+    saves_state: bool = True
 
     def __post_init__(self):
         names = {v.name for v in self.variables} | {"internal_step"}
         unknown = sorted(set(self.limits) - names)
         if unknown:
             raise ValueError(f"{self.model_name}: limits for undeclared variables {unknown}")
+        structural_names = {v.name for v in self.variables if v.causality == "structuralParameter"}
+        unknown = sorted(set(self.size_rules) - structural_names)
+        if unknown:
+            raise ValueError(f"{self.model_name}: size rules for {unknown}, which are no structural parameters")
 
     def all_variables(self) -> tuple[Variable, ...]:
         """The declared variables after the two every FMU has: ``time`` and ``internal_step``,

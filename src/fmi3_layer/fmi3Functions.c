@@ -101,6 +101,7 @@ typedef struct {
     char *name;
     double min, max; /* Float64: the plausible range fmi3SetFloat64 enforces (any finite number by default) */
     char *limit_text; /* "[min, max] unit: why", from the FMU's limit table; "" without a limit */
+    char *size_text;  /* what sizes an array and the coupling rule its size follows; "" for a scalar */
 } Variable;
 
 typedef struct {
@@ -173,7 +174,8 @@ static fmi3Status not_supported(fmi3Instance instance, const char *function, con
 
 /* ---- callbacks the Python runtime calls (through ctypes, GIL released) ---------------------------- */
 static int cb_register(void *instance, uint32_t vr, int type, int causality, int variability, void *data,
-                       uint64_t count, const char *name, double min, double max, const char *limit_text) {
+                       uint64_t count, const char *name, double min, double max, const char *limit_text,
+                       const char *size_text) {
     Instance *inst = (Instance *)instance;
     if (vr >= inst->n_variables) {
         size_t n = (size_t)vr + 1;
@@ -205,7 +207,11 @@ static int cb_register(void *instance, uint32_t vr, int type, int causality, int
         free(v->limit_text);
         v->limit_text = strdup(limit_text ? limit_text : "");
     }
-    if (!v->name || !v->limit_text) return -1;
+    if (!v->size_text || strcmp(v->size_text, size_text ? size_text : "") != 0) {
+        free(v->size_text);
+        v->size_text = strdup(size_text ? size_text : "");
+    }
+    if (!v->name || !v->limit_text || !v->size_text) return -1;
     v->min = min;
     v->max = max;
     v->declared = 1;
@@ -410,6 +416,7 @@ static void free_instance_memory(Instance *inst) {
         }
         free(v->name);
         free(v->limit_text);
+        free(v->size_text);
     }
     free(inst->variables);
     free(inst->instance_name);
@@ -747,8 +754,11 @@ static int check_references(Instance *inst, const char *function, int type, cons
             used += (size_t)written;
             if (i >= 4) break;
         }
-        log_message(inst, fmi3Error, "%s: the %zu value reference(s) hold %zu value(s), but nValues = %zu: %s",
-                    function, n_vrs, total, n_values, names);
+        /* an array sized by a structural parameter says which, and the rule another FMU's size follows */
+        const char *size_text = "";
+        for (size_t i = 0; i < n_vrs && !*size_text; i++) size_text = inst->variables[vrs[i]].size_text;
+        log_message(inst, fmi3Error, "%s: the %zu value reference(s) hold %zu value(s), but nValues = %zu: %s%s%s",
+                    function, n_vrs, total, n_values, names, *size_text ? "; " : "", size_text);
         return 0;
     }
     return 1;

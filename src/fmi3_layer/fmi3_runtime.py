@@ -83,7 +83,7 @@ STEP_IO_SIZE = 6  # as the C layer's enum (fmi3Functions.c), which checks the si
 
 _REGISTER = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_int,
                              ctypes.c_int, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_char_p, ctypes.c_double,
-                             ctypes.c_double, ctypes.c_char_p)
+                             ctypes.c_double, ctypes.c_char_p, ctypes.c_char_p)
 _COUNTERS = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint64)
 _LOG = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_char_p)
 _GET_STRING = ctypes.CFUNCTYPE(ctypes.c_char_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64)
@@ -159,10 +159,11 @@ def model_description(declaration, model_identifier: str, token: str, generation
         % (quoteattr(declaration.model_name), quoteattr(token), quoteattr(declaration.description),
            quoteattr(declaration.author), quoteattr(declaration.version), quoteattr(generation_date)),
         '  <CoSimulation modelIdentifier=%s canHandleVariableCommunicationStepSize="false" '
-        'fixedInternalStepSize="%r" canGetAndSetFMUState="true" canSerializeFMUState="true" '
+        'fixedInternalStepSize="%r" canGetAndSetFMUState="%s" canSerializeFMUState="%s" '
         'canBeInstantiatedOnlyOncePerProcess="false" hasEventMode="false" providesIntermediateUpdate="false" '
         'mightReturnEarlyFromDoStep="false" needsExecutionTool="%s"/>'
-        % (quoteattr(model_identifier), float(declaration.internal_step), str(needs_execution_tool).lower()),
+        % (quoteattr(model_identifier), float(declaration.internal_step), str(declaration.saves_state).lower(),
+           str(declaration.saves_state).lower(), str(needs_execution_tool).lower()),
     ]
     if units:
         lines.append("  <UnitDefinitions>")
@@ -419,7 +420,7 @@ class RuntimeInstance:
                 if reset or self.buffers[vr] is None:
                     self._register(self._c, vr, TYPE_CODES[v.type], CAUSALITY_CODES[v.causality],
                                    VARIABILITY_CODES[v.variability], None, 1, v.name.encode(),
-                                   *_register_limit(v))
+                                   *_register_limit(v), b"")
                     self._set_string(self._c, vr, 0, str(v.start if v.start is not None else "").encode())
                     self.buffers[vr] = np.zeros(0)  # marks "registered"
                 continue
@@ -443,12 +444,22 @@ class RuntimeInstance:
             self.views[vr] = buffer.reshape(shape) if shape else buffer
             status = self._register(self._c, vr, TYPE_CODES[v.type], CAUSALITY_CODES[v.causality],
                                     VARIABILITY_CODES[v.variability], buffer.ctypes.data, size, v.name.encode(),
-                                    *_register_limit(v))
+                                    *_register_limit(v), self._size_text(v, shape))
             if status != 0:
                 raise MemoryError(f"the FMI layer could not register {v.name}")
         if changed:
             self.values._rebind()
             self._time = memoryview(self.buffers[self.references["time"]])  # written every step
+
+    def _size_text(self, variable, shape: tuple) -> bytes:
+        """What sizes an array ("'x' is sized by n_tool_points = 31 x 3"), with the coupling rule the
+        structural parameter follows, for the C layer's message on a wrong number of values."""
+        named = [d for d in variable.shape if isinstance(d, str)]
+        if not named:
+            return b""
+        dims = " x ".join(f"{d} = {n}" if isinstance(d, str) else str(n) for d, n in zip(variable.shape, shape))
+        rules = [self.declaration.size_rules[d] for d in dict.fromkeys(named) if d in self.declaration.size_rules]
+        return (f"'{variable.name}' is sized by {dims}" + "".join(f"; {r}" for r in rules)).encode()
 
     # Strings live in the C layer (numbers in the buffers, reached through Values).
     def read_string(self, vr: int) -> str:
@@ -582,6 +593,9 @@ class RuntimeInstance:
         buffers = [None if v.type == "String" else self.buffers[vr].copy() for vr, v in enumerate(self.variables)]
         if self.adapter is None:
             return _Snapshot(buffers, strings, self.set_counts.copy(), None, None, ())
+        if not self.declaration.saves_state:
+            raise ValueError(f"{self.model_name} cannot save its state (canGetAndSetFMUState is false in its "
+                             "modelDescription.xml): its model holds other FMUs' instances")
         state = {k: v for k, v in vars(self.adapter).items() if not isinstance(v, Values)}
         values_attributes = tuple(k for k, v in vars(self.adapter).items() if isinstance(v, Values))
         return _Snapshot(buffers, strings, self.set_counts.copy(), type(self.adapter), copy.deepcopy(state),

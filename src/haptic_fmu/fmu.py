@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._coupling import TOOL_POINTS
+from ._coupling import TOOL_POINTS, rule, size_rules
 from ._fmi import FmuDeclaration, Limit, input_port, output, output_publisher, parameter, structural
 from .model import ContactModel, ContactOutputs, ContactParameters
 from .rendering import LOCAL_POLICIES
@@ -175,10 +175,17 @@ class ContactFmu:
             **{name: float(getattr(v, name)) for name, _, _ in FLOAT_PARAMETERS},
             **{name: str(getattr(v, name)) for name, _ in STRING_PARAMETERS},
         )
+        default_sizes = (len(DEFAULT_POSITIONS), len(DEFAULT_TRIANGLES))
+        if not v.set_count("surface_triangles") and (int(v.n_surface_nodes), int(v.n_surface_triangles)) != default_sizes:
+            raise ValueError(f"surface_triangles was never set, but the surface is not the default mesh's "
+                             f"({int(v.n_surface_nodes)} nodes, {int(v.n_surface_triangles)} triangles instead of "
+                             f"{default_sizes[0]}, {default_sizes[1]}): set it to Tissue's surface_triangles; "
+                             f"{rule('triangles')}")
         self.model = ContactModel(np.array(v.surface_triangles), int(v.n_surface_nodes), int(v.n_tool_points),
                                   params)
         self._take_frame(float(v.time))
         self.frame = int(v.tissue_frame)
+        self.frame_time = float(v.time)
         self.model.write_outputs_into(v.tool_force, v.tip_force, v.tissue_contact_force, v.patch_nodes)
 
     def _take_frame(self, t: float) -> None:
@@ -194,8 +201,11 @@ class ContactFmu:
         v, model = self.values, self.model
         frame = v.tissue_frame
         if frame != self.frame:
+            if not t > self.frame_time:
+                raise ValueError(f"tissue_frame changed from {self.frame} to {frame} at t = {t!r} s, before Contact "
+                                 f"stepped past its frame of t = {self.frame_time!r} s; {rule('frame')}")
             self._take_frame(t)
-            self.frame = frame
+            self.frame, self.frame_time = frame, t
         velocities = v.tool_velocities if v.set_count("tool_velocities") else None
         out = model.step(t, dt, v.tool_positions, velocities)
         # the model writes the arrays into the FMU's buffers; a model restored from an FMU state (a
@@ -213,4 +223,5 @@ DECLARATION = FmuDeclaration(
     variables=VARIABLES,
     adapter=ContactFmu,
     limits=LIMITS,
+    size_rules=size_rules("Contact"),
 )

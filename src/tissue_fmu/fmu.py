@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._coupling import PATCH_NODES
+from ._coupling import PATCH_NODES, size_rules
 from ._fmi import FmuDeclaration, Limit, calculated, input_port, output, parameter, structural
 from .errors import MeshError
 from .mesh import aaa_mesh, load_mesh
@@ -260,6 +260,7 @@ DECLARATION = FmuDeclaration(
     variables=VARIABLES,
     adapter=TissueFmu,
     limits=LIMITS,
+    size_rules=size_rules("Tissue"),
     # a frame costs milliseconds and up to a few hundred under strong load: 60 s of simulated time
     # in one call is minutes of work at worst, and no master needs more in one call
     max_steps_per_call=1800,
