@@ -352,8 +352,6 @@ def test_scene_validation_of_third_party_fmus(conformance_fmus, tmp_path):
     expected = [
         ("[fmu.a] parameters.blob", "Binary values, written in hexadecimal"),
         ("[fmu.a] parameters.mode", "an item name or its value ('Off' (1), 'Slow' (2), 'Fast' (3))"),
-        ("[fmu.fixed] step", "0.003 s is not a whole multiple of this FMU's fixed internal step 0.002 s "
-                             "(fixedInternalStepSize); use step = 0.002 or step = 0.004"),
         ("connection 1 (a.speed -> b.position)", "unit mismatch, m/s -> m (a.speed is in m/s, b.position in m)"),
         ("connection 5 (a.big -> fixed.a)", "a.big is Int64 and fixed.a is Float64: Int64 -> Float64 is not exact"),
         ("connection 6 (a.speed -> c.n)", "a.speed is Float64 and c.n is Int32: Float64 -> Int32 is not exact"),
@@ -366,6 +364,24 @@ def test_scene_validation_of_third_party_fmus(conformance_fmus, tmp_path):
     for where, what in expected:
         assert any(where in p and what in p for p in problems), (where, what, problems)
     assert len(problems) == len(expected), problems
+
+
+def test_a_step_that_is_no_multiple_of_the_fmus_internal_step_is_passed_on(conformance_fmus, tmp_path):
+    """FMI 3.0 leaves a communication step that is no whole multiple of fixedInternalStepSize to the
+    FMU: the scene is valid, validate says what will happen, and the FMU's own answer decides (this
+    one refuses: the run ends with its message)."""
+    data = scene(conformance_fmus, {"fixed": ("FixedStep", {"step": 0.003})}, record={"fixed": ["x"]},
+                 duration=0.006)
+    loaded = scene_from_dict(data, tmp_path)
+    assert loaded.components["fixed"].step == Fraction(3, 1000)
+    assert loaded.notes == ["[fmu.fixed] step: 0.003 s is not a whole multiple of this FMU's fixed internal step "
+                            "0.002 s (fixedInternalStepSize); FMI 3.0 leaves such a step to the FMU, so it is passed "
+                            "on as it is: the FMU may cover it as it can or refuse it (then use step = 0.002 or "
+                            "step = 0.004)"]
+    summary, _ = run_scene(loaded, tmp_path / "results", progress=False)
+    assert summary["status"] == "failed"
+    assert "communication step 0.0030000000000000001 s is not a whole multiple of the fixed internal step 0.002 s" \
+        in summary["error"]
 
 
 def test_the_project_fmus_keep_their_internal_step_rule(contact_fmu, tmp_path):

@@ -1,8 +1,9 @@
 """Command-line interface of the project (``python -m orchestration ...``).
 
 ``build`` builds the FMUs, ``validate SCENE`` checks a scene and lists every problem, ``run
-[SCENE]`` runs one (default: the AAA endovascular scene), ``study NAME`` runs a study. A user's
-mistake gives a message and a non-zero exit code, never a traceback.
+[SCENE]`` runs one (default: the AAA endovascular scene), ``export SCENE --ssp OUT.ssp`` writes one
+as an SSP package (which ``validate`` and ``run`` take as a scene), ``study NAME`` runs a study. A
+user's mistake gives a message and a non-zero exit code, never a traceback.
 """
 from __future__ import annotations
 
@@ -187,6 +188,36 @@ def _cmd_validate(args) -> int:
     for conn in scene.connections:
         extra = f", {conn.transition}" if conn.transition else ""
         print(f"  {conn.source}.{conn.source_port} -> {conn.target}.{conn.target_port} ({conn.ordering}{extra})")
+    for note in scene.notes:
+        print(f"  note: {note}")
+    return EXIT_OK
+
+
+def _cmd_export(args) -> int:
+    from orchestration.scene.ssp import SspExportError, export_ssp
+
+    if args.ssp is None:  # the format is an option: more formats than SSP are to come
+        print("error: export: say which format to write, e.g. `export SCENE --ssp out.ssp` (an SSP package)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        overrides = parse_assignments(args.set)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.duration is not None:
+        overrides["duration"] = args.duration
+    scene = _load(args.scene, overrides)
+    if scene is None:
+        return EXIT_USAGE
+    try:
+        out = export_ssp(scene, Path(args.ssp), force=args.force)
+    except SspExportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    fmus = sum(1 for c in scene.components.values() if c.is_fmu)
+    print(f"wrote {out}: {scene.name}, {fmus} FMU{'s' if fmus != 1 else ''}, {out.stat().st_size / 1e6:.0f} MB "
+          f"(run it with `python -m orchestration run {out}`)")
     return EXIT_OK
 
 
@@ -339,6 +370,16 @@ def main(argv: list[str] | None = None) -> int:
                             "slower; for comparison)")
     p_run.add_argument("--quiet", action="store_true", help="no progress bar and no summary unless it fails")
     p_run.set_defaults(func=_cmd_run)
+
+    p_export = sub.add_parser("export", help="write a scene in another format: --ssp, an SSP package")
+    p_export.add_argument("scene", help="scene file, or the name of a shipped scene (scenes/<name>.toml)")
+    formats = p_export.add_mutually_exclusive_group()
+    formats.add_argument("--ssp", metavar="OUT.ssp", default=None,
+                         help="an SSP 1.0 package: SystemStructure.ssd and the FMUs (docs/ssp.md)")
+    p_export.add_argument("--force", action="store_true", help="replace the output file if it exists")
+    p_export.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
+    p_export.add_argument("--duration", type=_duration, default=None, help="simulated seconds (default: the scene's)")
+    p_export.set_defaults(func=_cmd_export)
 
     p_study = sub.add_parser("study", help="run a study: tradeoff, stability or extremes")
     p_study.add_argument("name", choices=STUDIES)

@@ -129,6 +129,8 @@ class Simulation:
     def _run(self, stop) -> dict:
         from orchestration.observers.recorder import reserve_summary_space
 
+        for note in self.scene.notes:  # what validate says, for a run that was not validated first
+            logger.warning("%s", note)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         reserve_summary_space(self.out_dir)  # a volume the rows fill up still takes the summary that says so
         recording = Recording(self.scene, self.out_dir, surfaces=self.write_vtu)

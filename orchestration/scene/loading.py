@@ -54,7 +54,8 @@ def resolve_fmu_path(value, scene_dir: Path) -> tuple[Path | None, list[Path]]:
 def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     """Read and check a scene; raise ``SceneError`` listing every problem.
 
-    ``path`` is a TOML file, or the bare name of a shipped scene (``scenes/<name>.toml``).
+    ``path`` is a TOML file, an SSP package (``.ssp``: orchestration/scene/ssp.py), or the bare name
+    of a shipped scene (``scenes/<name>.toml``).
     ``overrides`` maps ``"component.parameter"`` (``"component.step"`` for the step,
     ``"scene.duration"`` or ``"duration"``) to values that replace the file's, as studies, ``--set``
     and ``--duration`` do.
@@ -72,6 +73,13 @@ def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     if not found:
         shipped = ", ".join(sorted(p.stem for p in SCENE_DIR.glob("*.toml")))
         raise SceneError(path, [f"scene file not found; shipped scenes: {shipped} (or give a path to a .toml file)"])
+    if path.suffix.lower() == ".ssp":  # an SSP package (orchestration/scene/ssp.py): its SSD as a scene dict
+        from orchestration.scene.ssp import read_package
+
+        package = read_package(path)
+        scene = scene_from_dict(package.data, package.base_dir, path, overrides)
+        package.check(scene)  # what the SSD declares is what the FMUs have
+        return scene
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -269,6 +277,7 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             problems.append(f"{where} path: {binary}")
             continue
         fixed = description.fixed_internal_step
+        notes: list[str] = []
         step_value = table.get("step", description.default_step)
         if step_value is None and fixed is not None:
             step_value = format_time(fixed).strip('"')
@@ -294,18 +303,20 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
                                 "remove the parameter (the master sets it from step)")
             parameters["internal_step"] = float(step)
         elif step is not None and fixed is not None and step % fixed != 0:
-            # FMI 3.0: any communication step, unless the FMU computes in fixed internal steps
+            # FMI 3.0 leaves such a step to the FMU (the standard's open issue 2156): it is passed on,
+            # and the FMU accepts it (covering it as it can) or refuses it, which ends the run with its message
             below = step // fixed * fixed
             fixes = " or ".join(f"step = {format_time(s)}" for s in (below, below + fixed) if s > 0)
             internal = format_time(fixed).strip('"')
-            problems.append(f"{where} step: {step_value} s is not a whole multiple of this FMU's fixed internal step "
-                            f"{internal} s (fixedInternalStepSize); use {fixes}")
+            notes.append(f"{where} step: {step_value} s is not a whole multiple of this FMU's fixed internal step "
+                         f"{internal} s (fixedInternalStepSize); FMI 3.0 leaves such a step to the FMU, so it is "
+                         f"passed on as it is: the FMU may cover it as it can or refuse it (then use {fixes})")
         check_parameters(where, parameters, ports, problems)
         hosting = table.get("hosting")
         if hosting is not None and hosting not in HOSTINGS:
             problems.append(f"{where} hosting: {hosting!r} is not one of {', '.join(HOSTINGS)}")
         components[name] = ComponentSpec(name=name, kind="fmu", step=step, parameters=parameters, path=fmu_path,
-                                         ports=ports, description=description, hosting=hosting)
+                                         ports=ports, description=description, hosting=hosting, notes=notes)
 
 
 def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, overrides: dict,

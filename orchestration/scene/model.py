@@ -78,6 +78,8 @@ class ComponentSpec:
     description: FmuDescription | None = None
     base_dir: Path | None = None                # blocks: where their relative paths start
     hosting: str | None = None                  # FMUs: "in-process" | "out-of-process" (None: the scene's)
+    #: what ``validate`` and a run say about the component that is no error (a step passed on to the FMU)
+    notes: list[str] = field(default_factory=list)
 
     def new_block(self):
         """A fresh instance of a block or source (each run gets its own: a scene is data)."""
@@ -136,6 +138,11 @@ class Scene:
     #: run-faults (issue 14): seconds a worker process may take to answer during the run;
     #: None: automatic, max(10 s, 100 x its slowest recent reply) (see orchestration.hosts.worker)
     worker_timeout: float | None = None
+
+    @property
+    def notes(self) -> list[str]:
+        """What ``validate`` and a run report about the scene that is no error, component by component."""
+        return [note for spec in self.components.values() for note in spec.notes]
 
     def incoming(self, component: str) -> list[ConnectionSpec]:
         return [c for c in self.connections if c.target == component]
