@@ -187,3 +187,19 @@ class PiecewiseLinearSource(Source):
             v = 1.0 - w
             row = [v * a + w * b for a, b in zip(rows[i - 1], rows[i])]
         return {out: np.array(row[s]) for out, s in self._slice_list}
+
+
+class ExternalSource(Source):
+    """Values given from outside, step by step, in place of a scene's source with the same ports:
+    what the scene exported as one FMU reads from its importer's inputs. ``values[name]`` (a flat
+    float64 array of the port's size) is what every evaluation returns until it is set again; the
+    embedding master sets it before it advances the run over the time it holds for."""
+
+    def __init__(self, name: str, ports: dict[str, PortInfo]):
+        self.name = name
+        self.ports = dict(ports)
+        self.values = {port: np.array(info.start if info.start is not None else 0.0, dtype=np.float64).reshape(-1)
+                       for port, info in self.ports.items()}
+
+    def evaluate(self, t: float) -> dict[str, np.ndarray]:
+        return {name: (value.copy() if value.size > 1 else value[0].copy()) for name, value in self.values.items()}

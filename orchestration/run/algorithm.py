@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Callable
@@ -141,13 +142,14 @@ class MultirateAlgorithm:
     """Steps the stepped components of ``scene`` from 0 to ``duration`` (exact) over their hosts.
 
     ``make_host(spec)`` gives each stepped component its host (the ``ComponentHost`` protocol of
-    :mod:`.hosting`); continuous sources are created per run from their spec. ``observers`` are
+    :mod:`.hosting`); continuous sources are created per run from their spec, unless ``sources``
+    gives one by name (an embedding master's, e.g. :class:`~orchestration.blocks.sources.ExternalSource`). ``observers`` are
     notified of every step's outputs; ``extra_observed`` names more ports to read after each step.
     """
 
     def __init__(self, scene: Scene, duration: Fraction, make_host: Callable[[ComponentSpec], object],
                  observers: list = (), extra_observed: dict[str, list[str]] | None = None,
-                 compiled_loop: bool = True):
+                 compiled_loop: bool = True, sources: dict[str, object] | None = None):
         self.scene = scene
         self.duration = Fraction(duration)
         self.base = math.lcm(tick_base(scene), self.duration.denominator)
@@ -158,6 +160,8 @@ class MultirateAlgorithm:
             if not isinstance(observer, Observer):
                 raise TypeError(f"{observer!r} is no observer: subclass orchestration.observers.base.Observer")
         self.extra_observed = dict(extra_observed or {})
+        #: sources given by an embedding master in place of the scene's (by name, the same ports)
+        self.given_sources = dict(sources or {})
         self.components: dict[str, Component] = {}
         self.ordered: list[Component] = []
         self.sources: dict[str, object] = {}
@@ -217,7 +221,8 @@ class MultirateAlgorithm:
         self.ordered = list(self.components.values())
         for spec in scene.components.values():
             if spec.is_continuous:
-                self.sources[spec.name] = spec.new_block()
+                given = self.given_sources.get(spec.name)
+                self.sources[spec.name] = given if given is not None else spec.new_block()
 
         for conn in scene.connections:
             target = self.components[conn.target]
@@ -469,6 +474,39 @@ class MultirateAlgorithm:
                 progress(self.reached)
         if progress is not None:
             progress(self.reached)
+        if self.terminated is not None:
+            raise self.terminated
+
+    def advance(self, tick: int, clock: Callable[[], float] = time.perf_counter) -> None:
+        """Step each component to the last point of its grid at or before ``tick`` (at most the run's
+        end): for a master that embeds this one and advances it call by call (the scene exported as
+        one FMU). The same steps with the same values as :meth:`run`, whose values depend on ticks only;
+        a step starts once its inputs exist, as there, and no step ends beyond ``tick``. In Python
+        (the compiled loop plans stretches up to a fixed end)."""
+        if self.schedule is None:
+            self.schedule = Schedule(self.ordered, self.end, self.seconds)
+            self.schedule.forget()  # the ends move with every call: no decision is remembered
+            for observer in self.observers:
+                observer.started(self)
+        tick = min(int(tick), self.end)
+        comps = self.ordered
+        for comp in comps:
+            comp.end = max(comp.time, (tick // comp.step) * comp.step)
+        schedule = self.schedule
+        while True:
+            if self.stop_reason:
+                raise RunInterrupted(self.stop_reason)
+            decision = schedule.next()
+            if decision is None:
+                break
+            start, index = decision
+            comp = comps[index]
+            if start:
+                self.start_step(comp, clock)
+                if not comp.asynchronous:
+                    self.finish_step(comp, clock)
+            else:
+                self.finish_step(comp, clock)
         if self.terminated is not None:
             raise self.terminated
 
