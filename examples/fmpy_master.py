@@ -126,9 +126,9 @@ def run(scene_file: Path, fmu_dir: Path, duration: Fraction, out: Path) -> None:
         # Rule 'initialization': Tissue, Catheter, Contact, each with the outputs of those before it.
         latest = {}  # producer -> {output: its latest sample}
 
-        def take(name):
-            latest[name] = {o: fmus[name].get(o) for o in {out for c in links.values() for (_, p, out, _, _) in c
-                                                          if p == name}}
+        def take(name):  # the outputs of `name` that another FMU reads, as they are now
+            read = {out for consumer in links.values() for (_, producer, out, _, _) in consumer if producer == name}
+            latest[name] = {o: fmus[name].get(o) for o in read}
 
         tissue.slave.enterInitializationMode(startTime=0.0)
         tissue.slave.exitInitializationMode()

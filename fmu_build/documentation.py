@@ -36,7 +36,8 @@ def _coupling_section(contract: dict) -> str:
                        f"<td><code>{escape(link[other_side])}</code></td><td>{escape(link['transition'])}</td>"
                        f"<td>{escape(link['ordering'] or '-')}</td><td>{escape(link['sees'])}</td></tr>\n"
                        for link in links)
-    head = "<tr><th>{}</th><th>{}</th><th>transition</th><th>ordering</th><th>the consumer stepping [t, t + h] sees</th></tr>\n"
+    head = ("<tr><th>{}</th><th>{}</th><th>transition</th><th>ordering</th>"
+            "<th>the consumer stepping [t, t + h] sees</th></tr>\n")
     steps = ", ".join(f"{escape(fmu)} {escape(step)} s" for fmu, step in contract["steps"].items())
     agreements = "".join(f"<li><code>{escape(' = '.join(a['parameters']))}</code>: {escape(a['why'])}</li>\n"
                          for a in contract["agreements"])

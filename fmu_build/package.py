@@ -83,7 +83,7 @@ def build_fmu_from_spec(spec: FmuSpec, dest: Path = DEFAULT_FMU_DIR) -> Path:
         raise BuildError(f"{name}: {package_dir} is not a package in this checkout")
     library = layer_library()
     environment = python_environment()
-    runtime = carried_runtime()
+    runtime = carried_runtime(extra_imports=spec.runtime_imports)
     dest = Path(dest)
     try:
         return _assemble(spec, package_dir, library, environment, runtime, dest)
@@ -106,7 +106,10 @@ def _assemble(spec: FmuSpec, package_dir: Path, library: Path, environment: dict
         add_build_data(spec, package_copy)
         for file in RUNTIME_FILES:
             shutil.copyfile(LAYER / file, resources / file)
-        digest = source_digest(sorted(package_copy.rglob("*.py")) + [LAYER / f for f in RUNTIME_FILES + LAYER_SOURCES])
+        # the package's code and the data it declares itself from (the scene FMU's ports): another
+        # declaration is another instantiation token, so a process never reuses one build's module for another
+        digest = source_digest(sorted(p for p in package_copy.rglob("*") if p.suffix in (".py", ".json"))
+                               + [LAYER / f for f in RUNTIME_FILES + LAYER_SOURCES])
         description = _describe(spec, resources, digest, root / "modelDescription.xml", needs_tool=runtime is None)
         meta = {
             "model_identifier": name,

@@ -111,17 +111,19 @@ def _environment_versions() -> list[str]:
     return sorted(f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions())
 
 
-def probe_imports(source_root: Path, build_dir: Path) -> dict[str, list[str]]:
-    """The site-packages entries the FMU packages import: {top-level entry: [sub-entries used]};
-    probed once per version of their sources and of this environment (cached in ``build_dir``)."""
-    sources = hashlib.sha256(sys.version.encode() + "\n".join(_environment_versions()).encode())
+def probe_imports(source_root: Path, build_dir: Path, extra_imports: tuple[str, ...] = ()) -> dict[str, list[str]]:
+    """The site-packages entries the FMU packages import (and the modules ``extra_imports``): {top-level
+    entry: [sub-entries used]}; probed once per version of their sources and of this environment
+    (cached in ``build_dir``)."""
+    sources = hashlib.sha256(sys.version.encode() + "\n".join(_environment_versions()).encode()
+                             + "\n".join(extra_imports).encode())
     for package in PROBED_PACKAGES + ("fmi3_layer",):
         for path in sorted((Path(source_root) / package).rglob("*.py")):
             sources.update(path.name.encode() + path.read_bytes())
     cached = Path(build_dir) / f"runtime-probe-{sources.hexdigest()[:16]}.json"
     if cached.exists():
         return json.loads(cached.read_text())
-    found = _probe(source_root)
+    found = _probe(source_root, extra_imports)
     Path(build_dir).mkdir(parents=True, exist_ok=True)
     partial = cached.with_name(cached.name + f".{os.getpid()}.partial")
     partial.write_text(json.dumps(found))
@@ -129,10 +131,11 @@ def probe_imports(source_root: Path, build_dir: Path) -> dict[str, list[str]]:
     return found
 
 
-def _probe(source_root: Path) -> dict[str, list[str]]:
+def _probe(source_root: Path, extra_imports: tuple[str, ...] = ()) -> dict[str, list[str]]:
     layer = Path(source_root) / "fmi3_layer"
-    proc = subprocess.run([sys.executable, "-c", _PROBE, ",".join(PROBED_PACKAGES), ",".join(LAZY_IMPORTS),
-                           str(source_root), str(layer)], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", _PROBE, ",".join(PROBED_PACKAGES),
+                           ",".join(LAZY_IMPORTS + tuple(extra_imports)), str(source_root), str(layer)],
+                          capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"probing what the FMU packages import failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -264,17 +267,28 @@ def _dependency_order(libraries: dict[str, Path]) -> list[str]:
     return order
 
 
-def runtime_folder(build_dir: Path, source_root: Path) -> Path:
+def runtime_folder(build_dir: Path, source_root: Path, extra_imports: tuple[str, ...] = ()) -> Path:
     """Where the runtime for this Python and these packages is (or will be) built."""
-    entries = _carried_entries(probe_imports(source_root, build_dir))
+    entries = _carried_entries(probe_imports(source_root, build_dir, extra_imports))
     return Path(build_dir) / f"runtime-{runtime_digest(entries)}"
 
 
-def build_runtime(build_dir: Path, source_root: Path) -> Path:
-    """The runtime folder for this Python and these packages (built once, then reused)."""
-    entries = _carried_entries(probe_imports(source_root, build_dir))
+#: in the folder of a runtime that carries more than the project's FMUs need (the scene FMU's)
+EXTRA_MARKER = "extra_imports.txt"
+
+
+def _is_extra(path: Path) -> bool:
+    """Whether ``path`` (a runtime folder or its .zip) is a runtime made with extra imports."""
+    folder = path if path.is_dir() else path.with_suffix("")
+    return (folder / EXTRA_MARKER).exists()
+
+
+def build_runtime(build_dir: Path, source_root: Path, extra_imports: tuple[str, ...] = ()) -> Path:
+    """The runtime folder for this Python and these packages, and the modules ``extra_imports`` with
+    what they import (built once, then reused)."""
+    entries = _carried_entries(probe_imports(source_root, build_dir, extra_imports))
     library = python_library()
-    folder = runtime_folder(build_dir, source_root)
+    folder = runtime_folder(build_dir, source_root, extra_imports)
     if (folder / "manifest.txt").exists():
         return folder
     version = "%d.%d" % sys.version_info[:2]
@@ -299,6 +313,8 @@ def build_runtime(build_dir: Path, source_root: Path) -> Path:
     (partial / "manifest.txt").write_text("\n".join(lines) + "\n")
     description = {"python": version, "glibc": glibc_required(partial), "requirements": requirements(entries)}
     (partial / "runtime.json").write_text(json.dumps(description, indent=2))
+    if extra_imports:
+        (partial / EXTRA_MARKER).write_text("\n".join(extra_imports) + "\n")
     try:  # another process of this checkout may have finished the same runtime first: its stays
         partial.rename(folder)
     except OSError:
@@ -307,7 +323,7 @@ def build_runtime(build_dir: Path, source_root: Path) -> Path:
             raise
     for older in Path(build_dir).glob("runtime-*"):  # of other environments or versions: never read again
         if older.name not in (folder.name, folder.name + ".zip") and not older.name.endswith(".partial") \
-                and not older.name.startswith("runtime-probe-"):
+                and not older.name.startswith("runtime-probe-") and _is_extra(older) == bool(extra_imports):
             shutil.rmtree(older, ignore_errors=True) if older.is_dir() else older.unlink(missing_ok=True)
     logger.info("built the FMUs' Python runtime %s (%.0f MB)", folder, folder_size(folder) / 1e6)
     return folder
@@ -342,11 +358,13 @@ def prepare_carried_runtime(quiet: bool = False) -> None:
     carried_runtime()
 
 
-def carried_runtime(build_dir: Path = BUILD_DIR) -> CarriedRuntime | None:
+def carried_runtime(build_dir: Path = BUILD_DIR, extra_imports: tuple[str, ...] = ()) -> CarriedRuntime | None:
     """The runtime the FMUs carry, built and archived once per environment; None (with a warning
-    saying why) when this Python cannot be carried: the FMUs then need the build's Python."""
+    saying why) when this Python cannot be carried: the FMUs then need the build's Python. With
+    ``extra_imports`` (modules beyond the project's FMU packages, e.g. the orchestrator's), a runtime
+    that carries them too."""
     try:
-        folder = build_runtime(build_dir, SRC)
+        folder = build_runtime(build_dir, SRC, tuple(extra_imports))
     except RuntimeUnavailable as exc:
         logger.warning("the FMUs will carry no Python runtime and run only where this environment is: %s", exc)
         return None

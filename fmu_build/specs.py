@@ -17,6 +17,9 @@ class FmuSpec:
     declaration: str = "fmu:DECLARATION"
     #: folder that holds the package (default: ``src/``); test FMUs live elsewhere
     source_root: Path = SRC
+    #: modules beyond the project's FMU packages whose imports the FMU's Python runtime must carry
+    #: (the scene FMU's orchestrator); its runtime is then one of its own
+    runtime_imports: tuple[str, ...] = ()
 
 
 FMU_SPECS: dict[str, FmuSpec] = {

@@ -194,11 +194,16 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_export(args) -> int:
+    from fmu_build.errors import BuildError
+    from orchestration.app.scene_fmu import SceneFmuError, export_scene_fmu
     from orchestration.scene.ssp import SspExportError, export_ssp
 
-    if args.ssp is None:  # the format is an option: more formats than SSP are to come
-        print("error: export: say which format to write, e.g. `export SCENE --ssp out.ssp` (an SSP package)",
-              file=sys.stderr)
+    if args.ssp is None and args.fmu is None:
+        print("error: export: say which format to write: `export SCENE --ssp out.ssp` (an SSP package) or "
+              "`export SCENE --fmu out.fmu` (the scene as one FMU)", file=sys.stderr)
+        return EXIT_USAGE
+    if args.ssp is not None and (args.outputs or args.horizon is not None):
+        print("error: export: --outputs and --horizon are options of --fmu", file=sys.stderr)
         return EXIT_USAGE
     try:
         overrides = parse_assignments(args.set)
@@ -210,6 +215,18 @@ def _cmd_export(args) -> int:
     scene = _load(args.scene, overrides)
     if scene is None:
         return EXIT_USAGE
+    if args.fmu is not None:
+        try:
+            print(f"exporting {scene.name} as one FMU (a Python runtime of its own: a minute the first time) ...",
+                  flush=True)
+            out = export_scene_fmu(scene, Path(args.fmu), outputs=args.outputs, horizon=args.horizon,
+                                   overrides=overrides, force=args.force)
+        except (SceneFmuError, BuildError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        print(f"wrote {out}: {scene.name} as one FMU, {out.stat().st_size / 1e6:.0f} MB (its ports: "
+              "modelDescription.xml; docs/composition.md)")
+        return EXIT_OK
     try:
         out = export_ssp(scene, Path(args.ssp), force=args.force)
     except SspExportError as exc:
@@ -376,6 +393,13 @@ def main(argv: list[str] | None = None) -> int:
     formats = p_export.add_mutually_exclusive_group()
     formats.add_argument("--ssp", metavar="OUT.ssp", default=None,
                          help="an SSP 1.0 package: SystemStructure.ssd and the FMUs (docs/ssp.md)")
+    formats.add_argument("--fmu", metavar="OUT.fmu", default=None,
+                         help="the scene as one FMI 3.0 FMU with scalar ports (docs/composition.md)")
+    p_export.add_argument("--outputs", type=lambda text: [x.strip() for x in text.split(",") if x.strip()],
+                          default=None, metavar="COMP.PORT,...",
+                          help="--fmu: its outputs (default: the ports the scene records)")
+    p_export.add_argument("--horizon", type=_duration, default=None, metavar="S",
+                          help="--fmu: the simulated seconds it may run (default 1800)")
     p_export.add_argument("--force", action="store_true", help="replace the output file if it exists")
     p_export.add_argument("--set", action="append", metavar="COMP.PARAM=VALUE", help="override a parameter")
     p_export.add_argument("--duration", type=_duration, default=None, help="simulated seconds (default: the scene's)")

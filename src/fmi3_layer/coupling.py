@@ -118,7 +118,9 @@ RULES = {
 
 def contract_of(model_name: str) -> dict:
     """The part of the contract that concerns one FMU, JSON-able (``documentation/coupling.json``)."""
-    mine = lambda name: name.split(".", 1)[0] == model_name  # noqa: E731
+    def mine(name: str) -> bool:
+        return name.split(".", 1)[0] == model_name
+
     return {
         "format": "aaa-cosim coupling contract 1",
         "fmu": model_name,

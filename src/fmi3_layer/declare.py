@@ -15,6 +15,10 @@ The connecting class (the "adapter") is plain Python:
   writing outputs to the ``values`` it kept;
 - optional ``terminate(self)``.
 
+``values.set_count(name)`` says how often the importer set a variable; ``values.resource_folder()``
+is the instance's extracted ``resources/`` (for files the FMU carries: the package may have been
+imported from an earlier instance's folder, since removed).
+
 Its attributes (other than the ``values``) are the model state that fmi3GetFMUState saves, so
 they must survive ``copy.deepcopy`` and ``pickle``.
 

@@ -249,7 +249,11 @@ class Values:
         def set_count(values, name: str) -> int:
             return counts[references[name]]
         set_count.__doc__ = Values.set_count.__doc__
-        namespace = {"__slots__": (), "set_count": set_count}
+
+        def resource_folder(values) -> Path | None:
+            return instance.resources
+        resource_folder.__doc__ = Values.resource_folder.__doc__
+        namespace = {"__slots__": (), "set_count": set_count, "resource_folder": resource_folder}
         for vr, v in enumerate(instance.variables):
             namespace[v.name] = _value_property(instance, vr, v)
         object.__setattr__(self, "__class__", type(f"{instance.model_name}Values", (Values,), namespace))
@@ -261,6 +265,11 @@ class Values:
         """How often the importer has set ``name`` (e.g. to tell whether an optional input is used)."""
         instance = _instance_of(self)
         return instance.set_count_view[instance.references[name]]
+
+    def resource_folder(self) -> Path | None:
+        """This instance's extracted ``resources/`` folder: the files the FMU carries (the package
+        module may have been imported from another instance's folder, since removed)."""
+        return _instance_of(self).resources
 
     def __deepcopy__(self, memo):  # the values are saved with the buffers, not with the model
         return self
@@ -379,8 +388,10 @@ class RuntimeInstance:
     """One FMU instance: buffers registered with the C layer, the values, the adapter (model)."""
 
     def __init__(self, declaration, instance_name: str, c_instance: int, callbacks, router: _Router,
-                 token: str = "", codec=None):
+                 token: str = "", codec=None, resources: Path | None = None):
         self.declaration = declaration
+        #: this instance's extracted resources/ (a package loaded before may live in another one)
+        self.resources = resources
         self.token = token
         self.codec = codec  # the FMU state's bytes (state_format.Codec over the package's classes)
         self.model_name = declaration.model_name
@@ -885,4 +896,4 @@ def instantiate(resources: str, model_identifier: str, token: str, instance_name
     if codec is None:
         modules = [m for n, m in sys.modules.items() if (n == unique or n.startswith(unique + ".")) and m is not None]
         codec = _codecs[unique] = _state_format.Codec(unique, modules)
-    return RuntimeInstance(declaration, instance_name, c_instance, callbacks, router, token, codec)
+    return RuntimeInstance(declaration, instance_name, c_instance, callbacks, router, token, codec, resources)

@@ -176,11 +176,11 @@ class ContactFmu:
             **{name: str(getattr(v, name)) for name, _ in STRING_PARAMETERS},
         )
         default_sizes = (len(DEFAULT_POSITIONS), len(DEFAULT_TRIANGLES))
-        if not v.set_count("surface_triangles") and (int(v.n_surface_nodes), int(v.n_surface_triangles)) != default_sizes:
+        sizes = (int(v.n_surface_nodes), int(v.n_surface_triangles))
+        if not v.set_count("surface_triangles") and sizes != default_sizes:
             raise ValueError(f"surface_triangles was never set, but the surface is not the default mesh's "
-                             f"({int(v.n_surface_nodes)} nodes, {int(v.n_surface_triangles)} triangles instead of "
-                             f"{default_sizes[0]}, {default_sizes[1]}): set it to Tissue's surface_triangles; "
-                             f"{rule('triangles')}")
+                             f"({sizes[0]} nodes, {sizes[1]} triangles instead of {default_sizes[0]}, "
+                             f"{default_sizes[1]}): set it to Tissue's surface_triangles; {rule('triangles')}")
         self.model = ContactModel(np.array(v.surface_triangles), int(v.n_surface_nodes), int(v.n_tool_points),
                                   params)
         self._take_frame(float(v.time))

@@ -1,0 +1,1 @@
+../fmi3_layer/declare.py
