@@ -1,4 +1,4 @@
-"""SSP packages (orchestration/scene/ssp.py, docs/ssp.md): a scene exported as an SSP 1.0 package and
+"""SSP packages (orchestration/scene/ssp/, docs/ssp.md): a scene exported as an SSP 1.0 package and
 read back as a scene.
 
 - The exported default scene is valid SSP: its SystemStructure.ssd validates against the official
@@ -31,6 +31,8 @@ from orchestration.hosts.description import PortInfo
 from orchestration.scene import ssp
 from orchestration.scene.loading import load_scene
 from orchestration.scene.model import SceneError
+from orchestration.scene.ssp import archive as ssp_archive
+from orchestration.scene.ssp import ssd_reader, writing
 
 REPO = Path(__file__).resolve().parent.parent
 SCHEMAS = Path(importlib.util.find_spec("pyssp_standard").submodule_search_locations[0]) / "resources"
@@ -205,7 +207,8 @@ def test_running_the_package_writes_the_csvs_of_the_toml_scene(package, tmp_path
 def test_export_needs_a_format_and_replaces_a_file_only_when_forced(fmus_in_repo, tmp_path, capsys):
     out = tmp_path / "wall.ssp"
     assert cli.main(["export", "virtual_wall"]) == cli.EXIT_USAGE
-    assert "say which format to write, e.g. `export SCENE --ssp out.ssp`" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "say which format to write: `export SCENE --ssp out.ssp`" in err and "`export SCENE --fmu out.fmu`" in err
     out.write_bytes(b"keep")
     assert cli.main(["export", "virtual_wall", "--ssp", str(out)]) == cli.EXIT_USAGE
     assert "exists; give --force to replace it" in capsys.readouterr().err and out.read_bytes() == b"keep"
@@ -223,14 +226,14 @@ def test_export_needs_a_format_and_replaces_a_file_only_when_forced(fmus_in_repo
 def test_a_value_ssv_cannot_hold_goes_into_the_annotation():
     """An ssv:Integer is 32-bit, an ssv:Enumeration an item name: else the value stays exact in the
     component's annotation; a Real keeps the TOML's integer or float."""
-    assert ssp._ssv_value(PortInfo("n", "parameter", "Int64"), 2**40) is None
-    assert ssp._ssv_value(PortInfo("n", "parameter", "Int64"), 7) == ("Integer", "7")
-    assert ssp._ssv_value(PortInfo("mode", "parameter", "Enumeration"), 2) is None
-    assert ssp._ssv_value(PortInfo("mode", "parameter", "Enumeration"), "fast") == ("Enumeration", "fast")
-    assert ssp._ssv_value(PortInfo("k", "parameter", "Float64"), 1000) == ("Real", "1000")
-    assert ssp._ssv_value(PortInfo("k", "parameter", "Float64"), 0.1 + 0.2) == ("Real", "0.30000000000000004")
-    assert ssp._ssv_value(PortInfo("x", "parameter", "Float64", shape=(3,)), [1.0, 2.0, 3.0]) is None
-    assert ssp._number("1000") == 1000 and type(ssp._number("1000.0")) is float and ssp._number("1e999") is None
+    assert writing._ssv_value(PortInfo("n", "parameter", "Int64"), 2**40) is None
+    assert writing._ssv_value(PortInfo("n", "parameter", "Int64"), 7) == ("Integer", "7")
+    assert writing._ssv_value(PortInfo("mode", "parameter", "Enumeration"), 2) is None
+    assert writing._ssv_value(PortInfo("mode", "parameter", "Enumeration"), "fast") == ("Enumeration", "fast")
+    assert writing._ssv_value(PortInfo("k", "parameter", "Float64"), 1000) == ("Real", "1000")
+    assert writing._ssv_value(PortInfo("k", "parameter", "Float64"), 0.1 + 0.2) == ("Real", "0.30000000000000004")
+    assert writing._ssv_value(PortInfo("x", "parameter", "Float64", shape=(3,)), [1.0, 2.0, 3.0]) is None
+    assert ssd_reader._number("1000") == 1000 and type(ssd_reader._number("1000.0")) is float and ssd_reader._number("1e999") is None
 
 
 # -- untrusted archives --------------------------------------------------------------------------------
@@ -324,7 +327,7 @@ BROKEN_ARCHIVES = {
 @pytest.mark.parametrize("case", BROKEN_ARCHIVES)
 def test_an_unsafe_or_broken_archive_is_refused(template, tmp_path, monkeypatch, case):
     members, message = BROKEN_ARCHIVES[case]
-    monkeypatch.setattr(ssp, "MAX_MEMBER_BYTES", 4096)
+    monkeypatch.setattr(ssp_archive, "MAX_MEMBER_BYTES", 4096)
     path = tmp_path / "broken.ssp"
     if members is None:
         path.write_text("[scene]\nname = 'not a zip'\n")

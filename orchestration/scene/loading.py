@@ -54,7 +54,7 @@ def resolve_fmu_path(value, scene_dir: Path) -> tuple[Path | None, list[Path]]:
 def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     """Read and check a scene; raise ``SceneError`` listing every problem.
 
-    ``path`` is a TOML file, an SSP package (``.ssp``: orchestration/scene/ssp.py), or the bare name
+    ``path`` is a TOML file, an SSP package (``.ssp``: orchestration/scene/ssp/), or the bare name
     of a shipped scene (``scenes/<name>.toml``).
     ``overrides`` maps ``"component.parameter"`` (``"component.step"`` for the step,
     ``"scene.duration"`` or ``"duration"``) to values that replace the file's, as studies, ``--set``
@@ -73,7 +73,7 @@ def load_scene(path: Path | str, overrides: dict | None = None) -> Scene:
     if not found:
         shipped = ", ".join(sorted(p.stem for p in SCENE_DIR.glob("*.toml")))
         raise SceneError(path, [f"scene file not found; shipped scenes: {shipped} (or give a path to a .toml file)"])
-    if path.suffix.lower() == ".ssp":  # an SSP package (orchestration/scene/ssp.py): its SSD as a scene dict
+    if path.suffix.lower() == ".ssp":  # an SSP package (orchestration/scene/ssp/): its SSD as a scene dict
         from orchestration.scene.ssp import read_package
 
         package = read_package(path)
