@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -27,6 +29,23 @@ else:
 
 REPO = Path(__file__).resolve().parent.parent
 CCD_DATA = REPO.parent / "shared" / "data" / "ccd-sample-queries"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def temporary_files_in_the_session_folder(tmp_path_factory):
+    """Every temporary file of the tests and of the processes they start in a folder of the session,
+    removed at its end: an importer's extraction of a 150 MB FMU that a failing call leaves behind
+    (FMPy's ``simulate_fmu`` cleans up only when it returns) never piles up in /tmp run after run."""
+    folder = tmp_path_factory.mktemp("tmp")
+    saved = os.environ.get("TMPDIR"), tempfile.tempdir
+    os.environ["TMPDIR"] = tempfile.tempdir = str(folder)
+    yield folder
+    if saved[0] is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = saved[0]
+    tempfile.tempdir = saved[1]
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -169,6 +169,20 @@ def _load(scene_arg: str, overrides: dict | None = None):
         return None
 
 
+def _scene_of(args):
+    """The scene ``args.scene`` with the overrides of ``--set`` and ``--duration`` (checked with the
+    scene: whole steps, the run-size limit), and those overrides; None after saying what is wrong."""
+    try:
+        overrides = parse_assignments(args.set)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    if args.duration is not None:
+        overrides["duration"] = args.duration
+    scene = _load(args.scene, overrides)
+    return None if scene is None else (scene, overrides)
+
+
 def _cmd_validate(args) -> int:
     from orchestration.scene.model import SceneError
     from orchestration.scene.loading import load_scene
@@ -205,16 +219,10 @@ def _cmd_export(args) -> int:
     if args.ssp is not None and (args.outputs or args.horizon is not None):
         print("error: export: --outputs and --horizon are options of --fmu", file=sys.stderr)
         return EXIT_USAGE
-    try:
-        overrides = parse_assignments(args.set)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    loaded = _scene_of(args)
+    if loaded is None:
         return EXIT_USAGE
-    if args.duration is not None:
-        overrides["duration"] = args.duration
-    scene = _load(args.scene, overrides)
-    if scene is None:
-        return EXIT_USAGE
+    scene, overrides = loaded
     if args.fmu is not None:
         try:
             print(f"exporting {scene.name} as one FMU (a Python runtime of its own: a minute the first time) ...",
@@ -280,16 +288,10 @@ def _prepare_and_run(args, stop, folder) -> int:
             return stop.exit_code
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    try:
-        overrides = parse_assignments(args.set)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    loaded = _scene_of(args)
+    if loaded is None:
         return EXIT_USAGE
-    if args.duration is not None:  # checked with the scene: whole steps, and the run-size limit
-        overrides["duration"] = args.duration
-    scene = _load(args.scene, overrides)
-    if scene is None:
-        return EXIT_USAGE
+    scene, _ = loaded
     if folder is None:
         with ResultFolder(Path("results") / scene.name) as folder:
             return _simulate(args, stop, scene, folder, Simulation)

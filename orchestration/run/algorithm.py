@@ -463,12 +463,7 @@ class MultirateAlgorithm:
                     if progress is not None:
                         progress(self.reached)
                     continue
-            if start:
-                self.start_step(comp, clock)
-                if not comp.asynchronous:
-                    self.finish_step(comp, clock)
-            else:
-                self.finish_step(comp, clock)
+            self._carry_out(comp, start, clock)
             events += 1
             if progress is not None and not events & 63:
                 progress(self.reached)
@@ -500,15 +495,19 @@ class MultirateAlgorithm:
             if decision is None:
                 break
             start, index = decision
-            comp = comps[index]
-            if start:
-                self.start_step(comp, clock)
-                if not comp.asynchronous:
-                    self.finish_step(comp, clock)
-            else:
-                self.finish_step(comp, clock)
+            self._carry_out(comps[index], start, clock)
         if self.terminated is not None:
             raise self.terminated
+
+    def _carry_out(self, comp: Component, start: bool, clock) -> None:
+        """A decision of the schedule: start ``comp``'s step (and finish it, unless it runs in a worker)
+        or collect its step in flight."""
+        if start:
+            self.start_step(comp, clock)
+            if not comp.asynchronous:
+                self.finish_step(comp, clock)
+        else:
+            self.finish_step(comp, clock)
 
     # -- the end ---------------------------------------------------------------------------------
     def keep_outputs(self) -> dict[str, dict[str, np.ndarray]]:
