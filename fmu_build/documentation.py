@@ -105,12 +105,14 @@ the FMU loads the Python library recorded at build time:</p>
 <code>AAA_COSIM_LIBPYTHON</code> to its <code>libpython3.x.so</code>, <code>AAA_COSIM_PYTHONHOME</code> to
 its prefix and <code>PYTHONPATH</code> to a site-packages folder with those packages.</p>
 """
+    state = ("FMU state can be saved, restored and serialized." if description.get("saves_state", True) else
+             "FMU state cannot be saved (canGetAndSetFMUState is false): the model holds other FMUs' instances.")
     return f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>{description['model_name']}</title></head><body>
 <h1>{description['model_name']}</h1>
 <p>{description['description']}</p>
 <p>Variables, units and start values: <code>modelDescription.xml</code>. FMI 3.0 Co-Simulation; the
 communication step must be a whole multiple of <code>fixedInternalStepSize</code> (parameter
-<code>internal_step</code>). FMU state can be saved, restored and serialized.</p>
+<code>internal_step</code>). {state}</p>
 {running}{_coupling_section(contract) if contract else ""}</body></html>
 """

@@ -52,7 +52,8 @@ decl = getattr(importlib.import_module(package + "." + module_name), attribute)
 token = fmi3_runtime.instantiation_token(decl, digest)
 xml = fmi3_runtime.model_description(decl, identifier, token, date, needs_tool == "1")
 open(out, "w", encoding="utf-8").write(xml)
-print(json.dumps({"token": token, "model_name": decl.model_name, "description": decl.description}))
+print(json.dumps({"token": token, "model_name": decl.model_name, "description": decl.description,
+                  "saves_state": decl.saves_state}))
 """
 
 

@@ -70,6 +70,7 @@ def test_the_scene_fmu_has_scalar_ports_and_validates(scene_fmu):
     assert names["contact_tool_force_0"].unit == "N" and names["catheter_effort_warning"].type == "Boolean"
     assert not any(v.causality == "structuralParameter" for v in md.modelVariables)
     with zipfile.ZipFile(scene_fmu) as archive:
+        assert "FMU state cannot be saved" in archive.read("documentation/index.html").decode()
         inner = [n for n in archive.namelist() if n.startswith("resources/scene_fmu/fmus/")]
         assert len(inner) == 3
         for name in inner:  # the nested FMUs run in the scene FMU's interpreter: no runtime of their own
