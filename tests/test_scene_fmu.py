@@ -185,6 +185,23 @@ def test_the_scene_fmu_refuses_to_save_its_state_saying_why(scene_fmu):
         assert "cannot save its state" in " ".join(m for _, m in fmu.messages)
 
 
+def test_an_input_a_component_of_the_scene_refuses_is_refused_with_its_reason(scene_fmu):
+    """The importer hears the scene's component (the Catheter's plausible range of the insertion),
+    not "an internal error" of the scene FMU."""
+    from fmu_harness import fmu_instance
+
+    with fmu_instance(scene_fmu) as fmu:
+        fmu.slave.enterInitializationMode()
+        fmu.slave.exitInitializationMode()
+        fmu.slave.doStep(0.0, 0.001)
+        fmu.set("operator_insertion", 1000.0)  # a kilometre of catheter: a unit mistake
+        with pytest.raises(FMICallException):
+            fmu.slave.doStep(0.001, 0.001)
+        text = " ".join(m for _, m in fmu.messages)
+    assert "catheter" in text and "insertion" in text and "no catheter" in text, text
+    assert "internal error" not in text
+
+
 def test_a_step_beyond_the_horizon_is_refused_saying_so(scene, tmp_path):
     """The FMU runs the scene for the horizon it was exported with (30 minutes by default, rounded up
     to whole steps of every component); a master that asks for more is told, not given a silent end."""

@@ -57,6 +57,7 @@ class SceneFmu:
         if str(here / "vendor") not in sys.path:
             sys.path.append(str(here / "vendor"))  # an importer's own orchestrator (the same checkout) goes first
         from orchestration.blocks.sources import ExternalSource
+        from orchestration.errors import OrchestrationError
         from orchestration.hosts.in_process import InProcessFmu
         from orchestration.run.algorithm import MultirateAlgorithm
         from orchestration.scene.loading import scene_from_dict
@@ -90,9 +91,14 @@ class SceneFmu:
                                             compiled_loop=False, sources=self.sources)
         self.base = self.algorithm.base
         self._read_inputs()
+        #: what a scene's component refusing a call raises: the importer hears its reason (a refusal, not a defect)
+        self.refusal = OrchestrationError
         try:
             self.algorithm.setup()
             self.algorithm.initialize()
+        except self.refusal as exc:
+            self.algorithm.teardown()
+            raise ValueError(str(exc)) from None
         except BaseException:
             self.algorithm.teardown()
             raise
@@ -117,7 +123,10 @@ class SceneFmu:
         if tick > self.algorithm.end:
             raise ValueError(f"t + h = {t + dt!r} s is beyond the {SPEC['horizon']} s this FMU was exported to run; "
                              "export the scene again with a longer --horizon")
-        self.algorithm.advance(tick)
+        try:
+            self.algorithm.advance(tick)
+        except self.refusal as exc:  # e.g. "catheter: fmi3SetFloat64 ... failed (fmi3Error): insertion = ..."
+            raise ValueError(str(exc)) from None
         self._publish()
 
     def terminate(self) -> None:
