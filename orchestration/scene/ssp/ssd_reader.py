@@ -188,24 +188,33 @@ class SsdReader:
         return None
 
     # -- connectors --------------------------------------------------------------------------------
+    def _named_items(self, parent: ET.Element, group: str, item: str, where: str, name_fix: str, twice: str):
+        """``(name, element, where)`` of each ``item`` in the ``group`` elements of ``parent``, in order;
+        an item without a name or with the name of one before it is a problem (``name_fix``, ``twice``)."""
+        namespace = SSD_NS if group == "Connectors" else SSV_NS
+        seen: set[str] = set()
+        for elements in parent.findall(q(namespace, group)):
+            for element in elements.findall(q(namespace, item)):
+                name = element.get("name")
+                at = f"{where} {item} {name!r}"
+                if not name:
+                    self.problems.append(f"{where}: a {item} without a name; {name_fix}")
+                elif name in seen:
+                    self.problems.append(f"{at}: {twice}")
+                else:
+                    seen.add(name)
+                    yield name, element, at
+
     def _connector_list(self, parent: ET.Element, element_name: str | None, where: str) -> set[str]:
         names: set[str] = set()
-        for group in parent.findall(q(SSD_NS, "Connectors")):
-            for connector in group.findall(q(SSD_NS, "Connector")):
-                name = connector.get("name")
-                at = f"{where} Connector {name!r}"
-                if not name:
-                    self.problems.append(f"{where}: a Connector without a name; give name=\"port\"")
-                    continue
-                if name in names:
-                    self.problems.append(f"{at}: declared twice; declare each connector once")
-                    continue
-                names.add(name)
-                kind = connector.get("kind")
-                if kind not in ("input", "output", "parameter", "calculatedParameter", "inout"):
-                    self.problems.append(f"{at}: kind={kind!r} is not input, output, parameter or calculatedParameter")
-                    continue
-                self.connectors[(element_name, name)] = self._connector(connector, kind, at)
+        for name, connector, at in self._named_items(parent, "Connectors", "Connector", where, 'give name="port"',
+                                                     "declared twice; declare each connector once"):
+            names.add(name)
+            kind = connector.get("kind")
+            if kind not in ("input", "output", "parameter", "calculatedParameter", "inout"):
+                self.problems.append(f"{at}: kind={kind!r} is not input, output, parameter or calculatedParameter")
+                continue
+            self.connectors[(element_name, name)] = self._connector(connector, kind, at)
         return names
 
     def _connector(self, connector: ET.Element, kind: str, where: str) -> Connector:
@@ -356,19 +365,12 @@ class SsdReader:
         if not VERSION_1.fullmatch(parameter_set.get("version", "")):
             self.problems.append(f"{where}: version {parameter_set.get('version')!r}; give version=\"1.0\"")
         values: dict = {}
-        for group in parameter_set.findall(q(SSV_NS, "Parameters")):
-            for parameter in group.findall(q(SSV_NS, "Parameter")):
-                name = parameter.get("name")
-                at = f"{where} Parameter {name!r}"
-                if not name:
-                    self.problems.append(f"{where}: a Parameter without a name; give the FMU variable's name")
-                    continue
-                if name in values:
-                    self.problems.append(f"{at}: given twice; give each parameter once")
-                    continue
-                value = self._ssv_parameter(parameter, at)
-                if value is not None:
-                    values[name] = value
+        for name, parameter, at in self._named_items(parameter_set, "Parameters", "Parameter", where,
+                                                     "give the FMU variable's name",
+                                                     "given twice; give each parameter once"):
+            value = self._ssv_parameter(parameter, at)
+            if value is not None:
+                values[name] = value
         return values
 
     def _ssv_parameter(self, parameter: ET.Element, where: str):
