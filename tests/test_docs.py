@@ -180,7 +180,7 @@ def test_the_readme_command_summary_names_only_what_the_command_line_has():
     summary = _command_summary()
     subcommands = {line.split()[3] for line in summary}
     top = _help()
-    listed = set(re.search(r"\{([a-z,]+)\}", top).group(1).split(","))
+    listed = set(re.search(r"\{([a-z,-]+)\}", top).group(1).split(","))
     assert subcommands == listed, f"README lists {sorted(subcommands)}, the command line has {sorted(listed)}"
     for line in summary:
         words = line.split()

@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE_ROOTS = {"orchestration": ROOT, "fmu_build": ROOT, "tissue_fmu": ROOT / "src", "haptic_fmu": ROOT / "src",
-                 "catheter_fmu": ROOT / "src"}
+                 "catheter_fmu": ROOT / "src", "anatomy": ROOT / "src"}
 
 
 def _module_files() -> dict[str, Path]:

@@ -347,6 +347,85 @@ def _cmd_study(args) -> int:
                      fresh=args.fresh, quiet=args.quiet)
 
 
+def _cmd_scene_from_anatomy(args) -> int:
+    import time
+
+    from anatomy.errors import AnatomyError
+    from orchestration.app.anatomy_scene import write_anatomy_scene
+
+    started = time.perf_counter()
+
+    def stage(text: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - started:6.1f} s] {text}", flush=True)
+
+    try:
+        surface, name = _anatomy_surface(args, stage)
+        anatomy = _build_anatomy(args, surface, stage)
+        out = Path(args.out) if args.out else Path(name)
+        stage(f"writing the scene into {out}/")
+        written = write_anatomy_scene(anatomy, out, name, duration=args.duration, contact_time=args.contact_time,
+                                      force=args.force)
+    except (AnatomyError, FileExistsError, OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if not args.quiet:
+        print(anatomy.surface.report())
+        quality = anatomy.wall.quality()
+        print(f"wall: {anatomy.wall.n_nodes} nodes, {anatomy.wall.n_tets} tetrahedra, worst radius ratio "
+              f"{quality['min_radius_ratio']:.3f}; centerline {anatomy.centerline.length() * 1e3:.1f} mm, the sac "
+              f"reaches {anatomy.sac_reach * 1e3:.1f} mm ({anatomy.sac_reach / anatomy.reference_radius:.2f}x the "
+              f"neck's radius); the tip should meet the sac wall at about {written.contact_time:.2f} s")
+        for note in anatomy.notes:
+            print(f"note: {note}")
+        print(f"wrote {written.scene}, {written.wall.name}, {written.lumen.name}, {written.centerline.name}")
+        print(f"run it: python -m orchestration run {written.scene}")
+    return EXIT_OK
+
+
+def _anatomy_surface(args, stage):
+    """The checked lumen surface the command was given (a file or family:<member>) and the scene's name."""
+    from anatomy.surface import check_surface, read_surface
+
+    if args.surface.startswith("family:"):
+        from anatomy.family import lumen_surface
+
+        kind = args.surface.split(":", 1)[1]
+        stage(f"generating the parametric aneurysm {kind!r}")
+        shape = parse_shape(args.shape)
+        surface = check_surface(lumen_surface(kind, **shape), "m", source=args.surface)
+        return surface, args.name or f"aaa_{kind}"
+    stage(f"reading {args.surface}")
+    return read_surface(args.surface, args.units), args.name or Path(args.surface).stem
+
+
+def _build_anatomy(args, surface, stage):
+    from anatomy.pipeline import WallOptions, build_anatomy
+
+    options = WallOptions(thickness=args.thickness, sac_thickness=args.sac_thickness, layers=args.layers,
+                          edge_length=args.edge_length, remesh=args.remesh)
+    stage("building the wall and the centerline (remeshing first when the triangles do not fit)")
+    return build_anatomy(surface, options, access=args.access, target=args.target)
+
+
+def parse_shape(items: list[str] | None) -> dict:
+    """``--shape sac_diameter=0.06``: a parametric aneurysm's parameters (TOML values)."""
+    import tomllib
+
+    from anatomy.errors import AnatomyError
+
+    shape = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise AnatomyError(f"--shape {item!r}: write name=value, e.g. sac_diameter=0.06")
+        try:
+            shape[key.strip()] = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            raise AnatomyError(f"--shape {item!r}: the value must be a number (metres, degrees as named)") from None
+    return shape
+
+
 def _release_stop_signals() -> None:
     from orchestration import stopping
 
@@ -418,6 +497,36 @@ def main(argv: list[str] | None = None) -> int:
                          help="run every point again (default: resume, keeping the points finished in --out)")
     p_study.add_argument("--quiet", action="store_true", help="no progress bar")
     p_study.set_defaults(func=_cmd_study)
+
+    p_anatomy = sub.add_parser("scene-from-anatomy",
+                               help="write a runnable scene from a lumen surface (STL, OBJ, PLY) or family:<member>")
+    p_anatomy.add_argument("surface", help="the lumen surface file, or family:<member> for a parametric aneurysm "
+                                           "(fusiform, saccular, eccentric, angulated_neck, tortuous, bifurcation)")
+    p_anatomy.add_argument("--out", default=None, help="folder for the scene and its files (default ./<name>)")
+    p_anatomy.add_argument("--name", default=None, help="scene name (default: the file's stem, or aaa_<member>)")
+    p_anatomy.add_argument("--units", choices=("auto", "m", "cm", "mm"), default="auto",
+                           help="the surface's length unit (default: detected from its size)")
+    p_anatomy.add_argument("--thickness", type=float, default=0.0015, help="wall thickness in m (default 0.0015)")
+    p_anatomy.add_argument("--sac-thickness", type=float, default=None,
+                           help="wall thickness in the sac in m (default: --thickness)")
+    p_anatomy.add_argument("--layers", type=int, default=2, help="element layers across the wall (default 2)")
+    p_anatomy.add_argument("--edge-length", type=float, default=0.003,
+                           help="the wall's element size along the surface in m (default 0.003)")
+    p_anatomy.add_argument("--remesh", choices=("auto", "always", "never"), default="auto",
+                           help="remesh the surface to --edge-length: when its triangles do not fit (auto), always, "
+                                "never")
+    p_anatomy.add_argument("--access", type=int, default=None,
+                           help="the open end the catheter enters by (default: the lowest along z)")
+    p_anatomy.add_argument("--target", type=int, default=None,
+                           help="the open end the centerline goes to (default: the highest along z)")
+    p_anatomy.add_argument("--shape", action="append", metavar="NAME=VALUE",
+                           help="a parameter of the parametric aneurysm (family:<member>)")
+    p_anatomy.add_argument("--duration", type=float, default=4.0, help="the scene's duration in s (default 4)")
+    p_anatomy.add_argument("--contact-time", type=float, default=1.5,
+                           help="when the operator's push brings the tip to the sac wall, in s (default 1.5)")
+    p_anatomy.add_argument("--force", action="store_true", help="replace the scene's files if they exist")
+    p_anatomy.add_argument("--quiet", action="store_true", help="no progress and no summary")
+    p_anatomy.set_defaults(func=_cmd_scene_from_anatomy)
 
     argv = sys.argv[1:] if argv is None else list(argv)
     try:

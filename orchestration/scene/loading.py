@@ -311,12 +311,33 @@ def _load_fmus(tables: dict, base_dir: Path, components: dict, overrides: dict, 
             notes.append(f"{where} step: {step_value} s is not a whole multiple of this FMU's fixed internal step "
                          f"{internal} s (fixedInternalStepSize); FMI 3.0 leaves such a step to the FMU, so it is "
                          f"passed on as it is: the FMU may cover it as it can or refuse it (then use {fixes})")
+        parameters = _resolve_files(where, parameters, base_dir, problems)
         check_parameters(where, parameters, ports, problems)
         hosting = table.get("hosting")
         if hosting is not None and hosting not in HOSTINGS:
             problems.append(f"{where} hosting: {hosting!r} is not one of {', '.join(HOSTINGS)}")
         components[name] = ComponentSpec(name=name, kind="fmu", step=step, parameters=parameters, path=fmu_path,
                                          ports=ports, description=description, hosting=hosting, notes=notes)
+
+
+def _resolve_files(where: str, parameters: dict, base_dir: Path, problems: list[str]) -> dict:
+    """``name = { file = "wall.vtu" }``: a file beside the scene, passed to the FMU as its absolute path
+    (an FMU resolves a relative path from the process's folder, which is not the scene's)."""
+    resolved = dict(parameters)
+    for key, value in parameters.items():
+        if not isinstance(value, dict):
+            continue
+        if set(value) != {"file"} or not isinstance(value["file"], str) or not value["file"].strip():
+            problems.append(f"{where} parameters.{key}: a table value names a file, {{ file = \"wall.vtu\" }} "
+                            f"(relative to the scene's folder); got {short_text(value)}")
+            continue
+        path = (base_dir / value["file"]).resolve()
+        if not path.is_file():
+            problems.append(f"{where} parameters.{key}: the file {value['file']!r} is not in the scene's folder "
+                            f"({base_dir}): write it there or give its path relative to the scene")
+            continue
+        resolved[key] = str(path)
+    return resolved
 
 
 def _load_blocks(tables: dict, section: str, base_dir: Path, components: dict, overrides: dict,

@@ -594,9 +594,11 @@ def load_mesh(path, fix_orientation: bool = False, drop_unreferenced: bool = Tru
     blocks = [i for i, block in enumerate(raw.cells) if block.type == "tetra"]
     if not blocks:
         found = sorted({block.type for block in raw.cells}) or ["none"]
+        surface = " (a surface: for a vessel's lumen surface, build its wall with `python -m orchestration " \
+                  "scene-from-anatomy`)" if found == ["triangle"] else ""
         raise MeshError(
             f"mesh file {path!r} has no linear tetrahedra ('tetra' cells); found cell types "
-            f"{found}: export a volume mesh with 4-node tetrahedra (for tetra10 keep the "
+            f"{found}{surface}: export a volume mesh with 4-node tetrahedra (for tetra10 keep the "
             "corner nodes)"
         )
     tets = np.concatenate([raw.cells[i].data for i in blocks]).astype(np.int64)
