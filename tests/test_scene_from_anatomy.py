@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from anatomy.family import FAMILY
+from anatomy.remesh import gmsh_problem
 from anatomy.surface import read_surface
 from anatomy.wall import build_wall, lumen_of
 from orchestration.observers.recorder import read_stream
@@ -121,6 +122,8 @@ def test_a_broken_surface_is_a_usage_error_naming_it(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("member", sorted(FAMILY))
 def test_every_parametric_aneurysm_builds_meshes_and_runs_with_contact(member, fmus_in_repo, tmp_path):
+    if gmsh_problem():                      # the bifurcation's marching surface is remeshed
+        pytest.skip(gmsh_problem())
     proc = _cli("scene-from-anatomy", f"family:{member}", "--out", tmp_path, "--duration", 1, "--contact-time", 0.5)
     assert proc.returncode == 0, proc.stderr
     scene_file = tmp_path / f"aaa_{member}.toml"

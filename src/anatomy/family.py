@@ -31,7 +31,10 @@ the source of it. A value outside raises :class:`AnatomyError` naming the parame
 the range and the source; ``strict=False`` (for stress tests beyond the clinical ranges) logs a
 warning instead. Where no guideline or study gives a bound, the table says so: those bounds are
 plausibility limits of this model. Shapes that cannot be built (a sac narrower than its aorta, a
-bend tighter than the tube) raise whatever ``strict`` says.
+bend tighter than the tube, a lumen that curves tighter than a wall can follow: a radius of curvature,
+concave or convex, below :data:`MIN_FOLD_RADIUS`) raise whatever ``strict`` says. The folds are exact
+where the shape has a closed form (the sac's profile, the saccular's rim, the neck's bend) and measured
+on the surface's definition where it has none (a sac on a winding axis, the bifurcation's junction).
 
 Resolution: ``edge_length`` is the target mean length of the triangles' edges (2.5 mm by
 default); ``triangles`` asks for about that many triangles instead (e.g. 200 000 for a benchmark).
@@ -67,6 +70,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "FAMILY",
     "DEFAULT_EDGE_LENGTH",
+    "MIN_FOLD_RADIUS",
     "Range",
     "EndSpec",
     "SacSite",
@@ -88,6 +92,14 @@ EXPORT_FORMATS = (".stl", ".obj", ".ply")
 MAX_CURVATURE_RADIUS = 0.8
 # Above this the marching grid (nodes) or a sweep (vertices) would not fit in memory comfortably.
 MAX_GRID_NODES = 60_000_000
+# The tightest radius of curvature (m) a lumen may have, concave or convex (seen from outside). The wall is built by
+# offsetting the lumen outward by its thickness t (anatomy.wall, 1.5 mm by default): over a concave fold of radius
+# rho its outer face shrinks by 1 - t / rho (folding at rho = t, where the outside crosses itself), over a convex
+# one it stretches by 1 + t / rho (its elements turn to slivers as rho -> 0). Twice t (3 mm) would be the round
+# margin, but the defaults curve tighter (the saccular sac's rim 2.10 mm, the tortuous sac's dome on the inside of
+# its bend 2.43 mm, the bifurcation's crotch 2.94 mm) and build: 2 mm keeps a third over t (the outer face at least
+# a quarter of the inner one) and admits them.
+MIN_FOLD_RADIUS = 0.002
 
 # ------------------------------------------------------------------------------ the sources
 
@@ -206,15 +218,42 @@ def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray
 
 # ------------------------------------------------------------------------------ the parameter tables
 
+# The ranges of the fields every member has (see _Member), and with them the segment's length for the members that
+# have one: a member merges them into its RANGES ({**_ANEURYSM_RANGES, ...}), overriding a range where its own differs.
+_ANEURYSM_RANGES: dict[str, Range] = {
+    "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
+    "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
+    "aneurysm_length": Range(0.020, 0.150, "m", MODEL_LIMIT),
+}
+_SEGMENT_RANGES: dict[str, Range] = {**_ANEURYSM_RANGES, "segment_length": Range(0.060, 0.250, "m", MODEL_LIMIT)}
+
 
 @dataclass(frozen=True)
 class _Member:
-    """Common behaviour of the family's parameter dataclasses (fields and ``RANGES`` in each member)."""
+    """Common behaviour of the family's parameter dataclasses.
+
+    Every member is an aorta with a sac, so the three fields saying so are declared here (first, in
+    every member's keyword order; a member redeclares one to change its default); the others and
+    ``RANGES`` are in each member.
+    """
 
     KIND: ClassVar[str] = ""
     RANGES: ClassVar[dict[str, Range]] = {}
     #: number of open ends of the surface
     N_ENDS: ClassVar[int] = 2
+    #: what the error for a sac narrower than the aorta suggests
+    _SAC_OUTWARD_FIX: ClassVar[str] = "the sac bulges outward"
+    #: what _sac_height is, in the parameters (for the error of a sac that folds)
+    _SAC_HEIGHT: ClassVar[str] = "aneurysm_radius - aorta_radius"
+    #: the parameters that shape a fold found by measuring the surface, and what the error suggests
+    _FOLD_PARAMETERS: ClassVar[tuple[str, ...]] = ("aorta_radius", "aneurysm_radius", "aneurysm_length")
+    _FOLD_FIX: ClassVar[str] = "lengthen the sac or reduce its radius"
+    #: lumen radius of the healthy aorta, m
+    aorta_radius: float = 0.010
+    #: the sac's largest lumen radius, m (half its clinical diameter)
+    aneurysm_radius: float = 0.025
+    #: the sac's length along the axis, m
+    aneurysm_length: float = 0.060
     _: KW_ONLY
     #: False: a value outside its published range only logs a warning (stress tests); shapes that
     #: cannot be built still raise
@@ -241,10 +280,55 @@ class _Member:
         self._check_shape()
 
     def _check_shape(self) -> None:
-        """Raise for parameters whose shape cannot be built (whatever ``strict`` says)."""
+        """Raise for parameters whose shape cannot be built (whatever ``strict`` says); a member extends it,
+        calling this first."""
+        self._check_sac_outward()
+        self._check_sac_fold()
+
+    def _check_sac_outward(self) -> None:
+        if self.aneurysm_radius < self.aorta_radius:
+            self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) < aorta_radius ({self.aorta_radius:g})",
+                       self._SAC_OUTWARD_FIX)
+
+    def _sac_height(self) -> float:
+        """Height h of the cos^2 bump of the sac's most bulging meridian (its wall's distance from the axis is
+        aorta_radius + h bump along the axis); a member whose sac bulges farther than it widens overrides it."""
+        return self.aneurysm_radius - self.aorta_radius
+
+    def _check_sac_fold(self) -> None:
+        """The sac's meridian aorta_radius + h cos^2(pi x / L) has r'' = -(2 pi^2 h / L^2) cos(2 pi x / L): its
+        curvature r'' / (1 + r'^2)^(3/2) is largest, 2 pi^2 h / L^2, where r' = 0: at the centre (convex) and at
+        the junctions with the aorta (concave)."""
+        height = self._sac_height()
+        if height <= 0.0:
+            return
+        length = self.aneurysm_length
+        radius = length * length / (2.0 * math.pi ** 2 * height)
+        if radius >= MIN_FOLD_RADIUS:
+            return
+        # the bounds that would meet the limit: the length for this height, the radius for this length
+        shortest = math.sqrt(2.0 * math.pi ** 2 * height * MIN_FOLD_RADIUS)
+        widest = self.aorta_radius + (self.aneurysm_radius - self.aorta_radius) * (
+            length * length / (2.0 * math.pi ** 2 * MIN_FOLD_RADIUS)) / height
+        self._fail(f"the sac's profile (aneurysm_radius {self.aneurysm_radius:g} m over aneurysm_length {length:g} m "
+                   f"on aorta_radius {self.aorta_radius:g} m) curves with a radius of {radius * 1e3:.3g} mm at its "
+                   f"centre and where it meets the aorta (aneurysm_length^2 / (2 pi^2 h), h = {self._SAC_HEIGHT} = "
+                   f"{height * 1e3:.3g} mm), tighter than a wall can follow (MIN_FOLD_RADIUS "
+                   f"{MIN_FOLD_RADIUS * 1e3:g} mm)",
+                   f"lengthen the sac (aneurysm_length at least {shortest * 1e3:.3g} mm) or reduce its radius "
+                   f"(aneurysm_radius at most {widest * 1e3:.3g} mm)")
+
+    def _sac_profile(self, x, centre: float) -> np.ndarray:
+        """Radius of a sac of revolution centred at ``centre`` (x and centre along the axis): the aorta's,
+        widening over aneurysm_length to aneurysm_radius at the centre."""
+        return self.aorta_radius + (self.aneurysm_radius - self.aorta_radius) * _bump(x, centre, self.aneurysm_length)
 
     def _fail(self, what: str, fix: str) -> None:
         raise AnatomyError(f"{self.KIND}: {what}: {fix}")
+
+    def _shown(self, names: tuple[str, ...]) -> str:
+        """The named parameters and their values, for an error."""
+        return ", ".join(f"{name} {getattr(self, name):g} {self.RANGES[name].unit}".rstrip() for name in names)
 
     # -- the surface
 
@@ -398,14 +482,19 @@ class _Swept(_Member):
         raise NotImplementedError
 
     def _radius(self, s: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """r(s, theta); here a sac of revolution centred at the sac's arc length."""
+        r = self._sac_profile(s, self._sac_arc_length())
+        return np.broadcast_to(r, np.broadcast_shapes(np.shape(s), np.shape(theta)))
 
     @cached_property
     def _axis(self) -> _Axis:
         return _sample_axis(self._axis_function)
 
-    def _check_shape(self) -> None:
+    def __post_init__(self, strict: bool) -> None:
+        super().__post_init__(strict)
+        # after the member's own checks: they name what the sweep would only find broken
         self._check_sweep()
+        self._check_folds()
 
     def _fine_surface(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(points (n_s, n_theta, 3), radii (n_s, n_theta)) on the fine axis samples."""
@@ -441,6 +530,77 @@ class _Swept(_Member):
             i, j = np.argwhere(touching)[0]
             self._fail(f"the tube meets itself near {np.round(1e3 * points[i], 1).tolist()} mm and "
                        f"{np.round(1e3 * points[j], 1).tolist()} mm", "wind the axis less or shrink the sac")
+
+    def _check_folds(self) -> None:
+        """No principal curvature of the surface beyond 1 / MIN_FOLD_RADIUS, measured: where the sac's profile
+        meets a bend of the axis (the sac on the inner side of a bend is squeezed along the axis by 1 - kappa r)
+        the shape has no closed form, so the curvatures are those of the swept surface's own definition sampled
+        on a fine grid (every second axis sample, 128 angles).
+
+        Where a bend begins, the inner wall's speed along the axis drops at once to 1 - kappa r: the surface is
+        smooth there, its parametrisation is not, and second differences (or normals from chords) across it would
+        show a fold that is not there. So the normal is the exact one at each sample (the sweep's derivatives
+        from the axis's exact tangent and curvature: the rings turn only about the binormal), and the shape
+        operator A (-dn = dX A, its eigenvalues the principal curvatures) comes from the normals' turn between
+        neighbouring samples over the step between them. Like the chord of a circle this falls a little short
+        of the exact curvature, and averages it where it jumps (where a cos^2 sac meets the aorta, 1 % short;
+        at the saccular's rim, whose concave peak is narrower than the 2.8 degree step, up to a third): a shape
+        the exact formulas (the sac's profile, the saccular's rim, the neck's bend) admit is not refused here,
+        and those they refuse get their exact message first. On a sac of revolution on a bent axis, the
+        member this is for, four times the samples each way change the result by under 1 %."""
+        axis = self._axis
+        theta = np.linspace(0.0, 2.0 * np.pi, 128, endpoint=False)
+        u, s, centres = axis.u[::2], axis.s[::2], axis.points[::2]
+        du = 1e-6
+        ahead, behind = self._axis_function(u + du), self._axis_function(u - du)
+        velocity = (ahead - behind) / (2.0 * du)
+        speed = np.linalg.norm(velocity, axis=1, keepdims=True)
+        tangents = velocity / speed
+        bend = (ahead - 2.0 * centres + behind) / (du * speed) ** 2
+        bend -= np.sum(bend * tangents, axis=1, keepdims=True) * tangents          # d tangent / ds
+        n1 = _unit(axis.n1[::2] - np.sum(axis.n1[::2] * tangents, axis=1, keepdims=True) * tangents)
+        n2 = np.cross(tangents, n1)
+        cos, sin = np.cos(theta)[None, :, None], np.sin(theta)[None, :, None]
+        directions = cos * n1[:, None, :] + sin * n2[:, None, :]
+        radii = self._radius(s[:, None], theta[None, :])
+        points = centres[:, None, :] + radii[..., None] * directions
+        # the sweep's derivatives along the axis and around it, the radius's over 0.1 um and 1e-7 rad (over the
+        # samples' spacing they would be off where its curvature jumps, and the normal with them)
+        s_, theta_ = s[:, None], theta[None, :]
+        along = (self._radius(s_ + 1e-7, theta_) - self._radius(s_ - 1e-7, theta_)) / 2e-7
+        around = (self._radius(s_, theta_ + 1e-7) - self._radius(s_, theta_ - 1e-7)) / 2e-7
+        d_s = (tangents[:, None, :] * (1.0 - radii * np.einsum("ik,ijk->ij", bend, directions))[..., None]
+               + along[..., None] * directions)
+        d_t = around[..., None] * directions + radii[..., None] * (-sin * n1[:, None, :] + cos * n2[:, None, :])
+        normal = _unit(np.cross(d_t, d_s))
+        # out of the lumen: away from the axis (whatever the frame's handedness)
+        normal *= np.sign(np.einsum("ijk,ijk->ij", normal, points - centres[:, None]))[..., None]
+
+        def dot(a, b):
+            return np.einsum("ijk,ijk->ij", a, b)
+
+        # the central differences along the axis and around it: the moves (a, b) and the normal's turns (p, q)
+        a, p = np.gradient(points, axis=0), np.gradient(normal, axis=0)
+        b = 0.5 * (np.roll(points, -1, axis=1) - np.roll(points, 1, axis=1))
+        q = 0.5 * (np.roll(normal, -1, axis=1) - np.roll(normal, 1, axis=1))
+        # least squares -[p q] = [a b] A, A = -G^-1 R (G = [a b]^T [a b], R = [a b]^T [p q]); its trace and
+        # determinant give the principal curvatures (with the normal outward, concave seen from outside positive)
+        g11, g12, g22 = dot(a, a), dot(a, b), dot(b, b)
+        r11, r12, r21, r22 = dot(a, p), dot(a, q), dot(b, p), dot(b, q)
+        g_det = g11 * g22 - g12 * g12
+        half_trace = -0.5 * (g22 * r11 - g12 * r21 - g12 * r12 + g11 * r22) / g_det
+        det = (r11 * r22 - r12 * r21) / g_det
+        spread = np.sqrt(np.maximum(half_trace ** 2 - det, 0.0))
+        # the rows at the ends have one-sided differences (the tube is straight there anyway)
+        inner = slice(2, -2)
+        for side, curvature in (("concave", (half_trace + spread)[inner]), ("convex", -(half_trace - spread)[inner])):
+            worst = np.unravel_index(int(np.argmax(curvature)), curvature.shape)
+            if curvature[worst] * MIN_FOLD_RADIUS > 1.0:
+                where = (np.round(1e3 * points[inner][worst], 1) + 0.0).tolist()
+                self._fail(f"the lumen curves with a {side} radius of {1e3 / curvature[worst]:.3g} mm at {where} mm "
+                           f"({self._shown(self._FOLD_PARAMETERS)}; measured on the swept surface: no closed form "
+                           f"there), tighter than a wall can follow (MIN_FOLD_RADIUS {MIN_FOLD_RADIUS * 1e3:g} mm)",
+                           self._FOLD_FIX)
 
     def _build(self, edge_length: float) -> trimesh.Trimesh:
         axis = self._axis
@@ -518,49 +678,42 @@ class _Swept(_Member):
 
 
 @dataclass(frozen=True)
-class FusiformParameters(_Swept):
-    """A symmetric spindle about the z axis: tissue_fmu.mesh.aaa_mesh's lumen, z in [0, segment_length]."""
-
-    KIND: ClassVar[str] = "fusiform"
-    RANGES: ClassVar[dict[str, Range]] = {
-        "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
-        "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
-        "aneurysm_length": Range(0.020, 0.150, "m", MODEL_LIMIT),
-        "segment_length": Range(0.060, 0.250, "m", MODEL_LIMIT),
-    }
-    #: lumen radius of the healthy aorta at both ends, m
-    aorta_radius: float = 0.010
-    #: the sac's largest lumen radius, m (half its clinical diameter)
-    aneurysm_radius: float = 0.025
-    #: the sac's length along the axis, m (centred on the segment)
-    aneurysm_length: float = 0.060
-    #: the length of the segment, m (distal end at z = 0)
-    segment_length: float = 0.130
+class _Straight(_Swept):
+    """A tube swept up the z axis over the member's ``segment_length`` (declared in each member, last
+    among its fields), the sac centred on it."""
 
     def _check_shape(self) -> None:
-        if self.aneurysm_radius < self.aorta_radius:
-            self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) < aorta_radius ({self.aorta_radius:g})",
-                       "the sac bulges outward; give equal radii for a straight aorta")
+        super()._check_shape()
         if self.aneurysm_length > self.segment_length:
             self._fail(f"aneurysm_length ({self.aneurysm_length:g}) > segment_length ({self.segment_length:g})",
                        "lengthen the segment or shorten the sac")
-        super()._check_shape()
 
     def _axis_function(self, u):
         u = np.asarray(u, dtype=np.float64)
         return np.stack([np.zeros_like(u), np.zeros_like(u), self.segment_length * u], axis=-1)
-
-    def _radius(self, s, theta):
-        # the very function of today's generator, so the two shapes are the same to round-off
-        r = aaa_inner_radius(s, self.aorta_radius, self.aneurysm_radius, self.aneurysm_length, self.segment_length)
-        return np.broadcast_to(r, np.broadcast_shapes(np.shape(s), np.shape(theta)))
 
     def _sac_arc_length(self) -> float:
         return 0.5 * self.segment_length
 
 
 @dataclass(frozen=True)
-class SaccularParameters(_Swept):
+class FusiformParameters(_Straight):
+    """A symmetric spindle about the z axis: tissue_fmu.mesh.aaa_mesh's lumen, z in [0, segment_length]."""
+
+    KIND: ClassVar[str] = "fusiform"
+    RANGES: ClassVar[dict[str, Range]] = {**_SEGMENT_RANGES}
+    _SAC_OUTWARD_FIX: ClassVar[str] = "the sac bulges outward; give equal radii for a straight aorta"
+    #: the length of the segment, m (distal end at z = 0)
+    segment_length: float = 0.130
+
+    def _radius(self, s, theta):
+        # the very function of today's generator, so the two shapes are the same to round-off
+        r = aaa_inner_radius(s, self.aorta_radius, self.aneurysm_radius, self.aneurysm_length, self.segment_length)
+        return np.broadcast_to(r, np.broadcast_shapes(np.shape(s), np.shape(theta)))
+
+
+@dataclass(frozen=True)
+class SaccularParameters(_Straight):
     """A straight aorta along z with a sac bulging towards ``sac_azimuth_deg`` (from +x towards +y).
 
     The radius is r0 + depth * bump(z) * bump(theta): the cross-section through the sac's centre
@@ -569,14 +722,11 @@ class SaccularParameters(_Swept):
 
     KIND: ClassVar[str] = "saccular"
     RANGES: ClassVar[dict[str, Range]] = {
-        "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
-        "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
+        **_SEGMENT_RANGES,
         "aneurysm_length": Range(0.015, 0.120, "m", MODEL_LIMIT),
         "sac_width_deg": Range(60.0, 300.0, "deg", MODEL_LIMIT),
         "sac_azimuth_deg": Range(-360.0, 360.0, "deg", "any direction around the axis"),
-        "segment_length": Range(0.060, 0.250, "m", MODEL_LIMIT),
     }
-    aorta_radius: float = 0.010
     #: half the largest transverse lumen diameter through the sac (opposite wall to dome), m
     aneurysm_radius: float = 0.020
     #: the sac's extent along the axis at its base, m
@@ -587,18 +737,49 @@ class SaccularParameters(_Swept):
     sac_azimuth_deg: float = 90.0
     segment_length: float = 0.130
 
-    def _check_shape(self) -> None:
+    _SAC_HEIGHT: ClassVar[str] = "2 (aneurysm_radius - aorta_radius)"
+    _FOLD_PARAMETERS: ClassVar[tuple[str, ...]] = _Member._FOLD_PARAMETERS + ("sac_width_deg",)
+    _FOLD_FIX: ClassVar[str] = "lengthen or widen the sac (aneurysm_length, sac_width_deg) or reduce its radius"
+
+    def _check_sac_outward(self) -> None:
+        # unlike the others, equal radii are refused too: they would make no sac at all
         if self.aneurysm_radius <= self.aorta_radius:
             self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) <= aorta_radius ({self.aorta_radius:g})",
                        "a sac spans more than the aorta's diameter; enlarge it")
-        if self.aneurysm_length > self.segment_length:
-            self._fail(f"aneurysm_length ({self.aneurysm_length:g}) > segment_length ({self.segment_length:g})",
-                       "lengthen the segment or shorten the sac")
-        super()._check_shape()
 
-    def _axis_function(self, u):
-        u = np.asarray(u, dtype=np.float64)
-        return np.stack([np.zeros_like(u), np.zeros_like(u), self.segment_length * u], axis=-1)
+    def _sac_height(self) -> float:
+        return 2.0 * (self.aneurysm_radius - self.aorta_radius)
+
+    def _check_shape(self) -> None:
+        super()._check_shape()
+        self._check_rim_fold()
+
+    def _check_rim_fold(self) -> None:
+        """The cross-section through the sac's centre is the polar curve r = r0 + D cos^2(pi phi / W) (phi from
+        the azimuth, W the width): its curvature (r^2 + 2 r'^2 - r r'') / (r^2 + r'^2)^(3/2), with r' = 0 and
+        r'' = -+2 pi^2 D / W^2 at the dome's top and at its rim, is (r0 + D + c) / (r0 + D)^2 at the top (convex)
+        and (r0 - c) / r0^2 at the rim (concave when c = 2 pi^2 D / W^2 > r0). Away from that section the bump
+        along the axis scales D down, so these are the extremes."""
+        r0, depth, width = self.aorta_radius, self._sac_height(), math.radians(self.sac_width_deg)
+        c = 2.0 * math.pi ** 2 * depth / width ** 2
+        # the widest sac and the narrowest width at which the rim's concave radius is MIN_FOLD_RADIUS
+        allowed = r0 + r0 * r0 / MIN_FOLD_RADIUS
+        narrowest = math.degrees(math.sqrt(2.0 * math.pi ** 2 * depth / allowed))
+        widest = r0 + 0.5 * allowed * width ** 2 / (2.0 * math.pi ** 2)
+        shown = (f"(sac_width_deg {self.sac_width_deg:g} deg, depth {self._SAC_HEIGHT} = {depth * 1e3:.3g} mm, "
+                 f"aorta_radius {r0:g} m)")
+        if c > r0 and r0 * r0 / (c - r0) < MIN_FOLD_RADIUS:
+            self._fail(f"the sac's rim {shown} turns into the aorta with a concave radius of "
+                       f"{r0 * r0 / (c - r0) * 1e3:.3g} mm (aorta_radius^2 / (2 pi^2 depth / width^2 - aorta_radius)), "
+                       f"tighter than a wall can follow (MIN_FOLD_RADIUS {MIN_FOLD_RADIUS * 1e3:g} mm)",
+                       f"widen the sac (sac_width_deg at least {narrowest:.4g}) or reduce its radius (aneurysm_radius "
+                       f"at most {widest * 1e3:.3g} mm)")
+        top = (r0 + depth) ** 2 / (r0 + depth + c)
+        if top < MIN_FOLD_RADIUS:
+            self._fail(f"the sac's dome {shown} curves around its top with a convex radius of {top * 1e3:.3g} mm "
+                       "((aorta_radius + depth)^2 / (aorta_radius + depth + 2 pi^2 depth / width^2)), tighter than a "
+                       f"wall can follow (MIN_FOLD_RADIUS {MIN_FOLD_RADIUS * 1e3:g} mm)",
+                       "widen the sac (sac_width_deg)")
 
     def _radius(self, s, theta):
         depth = 2.0 * (self.aneurysm_radius - self.aorta_radius)
@@ -606,12 +787,9 @@ class SaccularParameters(_Swept):
         around = _angle_bump(theta, math.radians(self.sac_azimuth_deg), math.radians(self.sac_width_deg))
         return self.aorta_radius + depth * along * around
 
-    def _sac_arc_length(self) -> float:
-        return 0.5 * self.segment_length
-
 
 @dataclass(frozen=True)
-class EccentricParameters(_Swept):
+class EccentricParameters(_Straight):
     """A fusiform sac along z whose circular cross-sections are offset from the aortic axis.
 
     The section at height z is a circle of radius R(z) (the fusiform profile) centred
@@ -621,37 +799,30 @@ class EccentricParameters(_Swept):
 
     KIND: ClassVar[str] = "eccentric"
     RANGES: ClassVar[dict[str, Range]] = {
-        "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
-        "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
-        "aneurysm_length": Range(0.020, 0.150, "m", MODEL_LIMIT),
+        **_SEGMENT_RANGES,
         "eccentricity": Range(0.0, 1.0, "", MODEL_LIMIT + " (0: centred, 1: the opposite wall straight)"),
         "offset_azimuth_deg": Range(-360.0, 360.0, "deg", "any direction around the axis"),
-        "segment_length": Range(0.060, 0.250, "m", MODEL_LIMIT),
     }
-    aorta_radius: float = 0.010
-    aneurysm_radius: float = 0.025
-    aneurysm_length: float = 0.060
     eccentricity: float = 0.6
     #: the direction of the offset, degrees from +x towards +y (90: anterior, an arbitrary default)
     offset_azimuth_deg: float = 90.0
     segment_length: float = 0.130
 
+    _SAC_HEIGHT: ClassVar[str] = "(1 + eccentricity) (aneurysm_radius - aorta_radius)"
+    _FOLD_PARAMETERS: ClassVar[tuple[str, ...]] = _Member._FOLD_PARAMETERS + ("eccentricity",)
+    _FOLD_FIX: ClassVar[str] = "lengthen the sac, or reduce its radius or its eccentricity"
+
+    def _sac_height(self) -> float:
+        # the wall on the offset's side: e(z) + R(z) = aorta_radius + (1 + eccentricity) (R - r0) bump(z) (a negative
+        # eccentricity, refused below, would offset it to the other side)
+        return (1.0 + abs(self.eccentricity)) * (self.aneurysm_radius - self.aorta_radius)
+
     def _check_shape(self) -> None:
-        if self.aneurysm_radius < self.aorta_radius:
-            self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) < aorta_radius ({self.aorta_radius:g})",
-                       "the sac bulges outward")
-        if self.aneurysm_length > self.segment_length:
-            self._fail(f"aneurysm_length ({self.aneurysm_length:g}) > segment_length ({self.segment_length:g})",
-                       "lengthen the segment or shorten the sac")
+        super()._check_shape()
         offset = self.eccentricity * (self.aneurysm_radius - self.aorta_radius)
         if offset < 0 or self.aneurysm_radius - offset < 0.5 * self.aorta_radius:
             self._fail(f"the sac's centre (offset {offset:g} m) leaves the aortic axis less than half the aortic "
                        "radius inside the lumen", "lower the eccentricity (at most 1)")
-        super()._check_shape()
-
-    def _axis_function(self, u):
-        u = np.asarray(u, dtype=np.float64)
-        return np.stack([np.zeros_like(u), np.zeros_like(u), self.segment_length * u], axis=-1)
 
     def _radius(self, s, theta):
         b = _bump(s, 0.5 * self.segment_length, self.aneurysm_length)
@@ -661,9 +832,6 @@ class EccentricParameters(_Swept):
         # the polar radius about the axis of a circle (radius big) whose centre sits e away from it
         return e * np.cos(psi) + np.sqrt(big * big - (e * np.sin(psi)) ** 2)
 
-    def _sac_arc_length(self) -> float:
-        return 0.5 * self.segment_length
-
 
 @dataclass(frozen=True)
 class AngulatedNeckParameters(_Swept):
@@ -672,10 +840,10 @@ class AngulatedNeckParameters(_Swept):
     axis from the proximal end to the sac, bend included, as on a CT centerline."""
 
     KIND: ClassVar[str] = "angulated_neck"
+    _FOLD_PARAMETERS: ClassVar[tuple[str, ...]] = _Member._FOLD_PARAMETERS + ("bend_radius", "neck_angle_deg")
+    _FOLD_FIX: ClassVar[str] = "lengthen the sac or reduce its radius, or widen the neck's bend (bend_radius)"
     RANGES: ClassVar[dict[str, Range]] = {
-        "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
-        "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
-        "aneurysm_length": Range(0.020, 0.150, "m", MODEL_LIMIT),
+        **_ANEURYSM_RANGES,
         "neck_length": Range(0.010, 0.080, "m", f"lower bound: the shortest neck on label, {ENDURANT_IFU} "
                              f"({EXCLUDER_IFU}); upper bound: " + MODEL_LIMIT),
         "neck_angle_deg": Range(0.0, 60.0, "deg", f"the on-label limit of most EVAR devices: {ENDURANT_IFU}; "
@@ -684,9 +852,6 @@ class AngulatedNeckParameters(_Swept):
         "bend_azimuth_deg": Range(-360.0, 360.0, "deg", "any direction around the axis"),
         "distal_length": Range(0.005, 0.100, "m", MODEL_LIMIT),
     }
-    aorta_radius: float = 0.010
-    aneurysm_radius: float = 0.025
-    aneurysm_length: float = 0.060
     #: along the axis from the proximal end (renal level) to the sac, bend included, m
     neck_length: float = 0.035
     #: angle between the neck's axis and the sac's axis, degrees
@@ -699,14 +864,19 @@ class AngulatedNeckParameters(_Swept):
     distal_length: float = 0.035
 
     def _check_shape(self) -> None:
-        if self.aneurysm_radius < self.aorta_radius:
-            self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) < aorta_radius ({self.aorta_radius:g})",
-                       "the sac bulges outward")
+        super()._check_shape()
         arc = self.bend_radius * math.radians(self.neck_angle_deg)
         if arc > self.neck_length:
             self._fail(f"the bend ({arc * 1e3:.3g} mm along the axis) does not fit in the neck "
                        f"({self.neck_length * 1e3:.3g} mm)", "lengthen the neck, reduce the angle or the bend radius")
-        super()._check_shape()
+        # the bent neck is a piece of torus (the sac ends where the bend starts): along the axis, its inner wall is
+        # an arc of radius bend_radius - aorta_radius around the bend's centre, concave seen from outside
+        inner = self.bend_radius - self.aorta_radius
+        if self.neck_angle_deg > 0.0 and inner < MIN_FOLD_RADIUS:
+            self._fail(f"the inner wall of the neck's bend (bend_radius {self.bend_radius:g} m, aorta_radius "
+                       f"{self.aorta_radius:g} m) curves with a concave radius of {inner * 1e3:.3g} mm (bend_radius - "
+                       f"aorta_radius), tighter than a wall can follow (MIN_FOLD_RADIUS {MIN_FOLD_RADIUS * 1e3:g} mm)",
+                       f"widen the bend (bend_radius at least {(self.aorta_radius + MIN_FOLD_RADIUS) * 1e3:.3g} mm)")
 
     def _axis_function(self, u):
         s = np.asarray(u, dtype=np.float64) * self._total_length
@@ -727,11 +897,6 @@ class AngulatedNeckParameters(_Swept):
     def _total_length(self) -> float:
         return self.distal_length + self.aneurysm_length + self.neck_length
 
-    def _radius(self, s, theta):
-        r = self.aorta_radius + (self.aneurysm_radius - self.aorta_radius) * _bump(
-            s, self.distal_length + 0.5 * self.aneurysm_length, self.aneurysm_length)
-        return np.broadcast_to(r, np.broadcast_shapes(np.shape(s), np.shape(theta)))
-
     def _sac_arc_length(self) -> float:
         return self.distal_length + 0.5 * self.aneurysm_length
 
@@ -743,17 +908,15 @@ class TortuousParameters(_Swept):
     the axis (by arc length)."""
 
     KIND: ClassVar[str] = "tortuous"
+    _FOLD_PARAMETERS: ClassVar[tuple[str, ...]] = _Member._FOLD_PARAMETERS + ("winding_radius", "turns",
+                                                                              "segment_length")
+    _FOLD_FIX: ClassVar[str] = ("lengthen the sac or reduce its radius, or wind the axis less (a smaller "
+                                "winding_radius, fewer turns or a longer segment_length)")
     RANGES: ClassVar[dict[str, Range]] = {
-        "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
-        "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
-        "aneurysm_length": Range(0.020, 0.150, "m", MODEL_LIMIT),
+        **_SEGMENT_RANGES,
         "winding_radius": Range(0.0, 0.030, "m", MODEL_LIMIT),
         "turns": Range(0.25, 3.0, "", MODEL_LIMIT),
-        "segment_length": Range(0.060, 0.250, "m", MODEL_LIMIT),
     }
-    aorta_radius: float = 0.010
-    aneurysm_radius: float = 0.025
-    aneurysm_length: float = 0.060
     #: the largest distance of the axis from the z axis, m
     winding_radius: float = 0.015
     #: turns of the axis about z over the segment
@@ -762,13 +925,10 @@ class TortuousParameters(_Swept):
     segment_length: float = 0.130
 
     def _check_shape(self) -> None:
-        if self.aneurysm_radius < self.aorta_radius:
-            self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) < aorta_radius ({self.aorta_radius:g})",
-                       "the sac bulges outward")
+        super()._check_shape()
         if self.aneurysm_length > 0.9 * self._axis.length:
             self._fail(f"aneurysm_length ({self.aneurysm_length:g}) leaves no neck on the {self._axis.length:g} m axis",
                        "lengthen the segment or shorten the sac")
-        super()._check_shape()
 
     def _axis_function(self, u):
         u = np.asarray(u, dtype=np.float64)
@@ -780,11 +940,6 @@ class TortuousParameters(_Swept):
     def tortuosity_index(self) -> float:
         """Axis length over the distance between its ends."""
         return self._axis.length / self.segment_length
-
-    def _radius(self, s, theta):
-        half = 0.5 * self._axis.length
-        r = self.aorta_radius + (self.aneurysm_radius - self.aorta_radius) * _bump(s, half, self.aneurysm_length)
-        return np.broadcast_to(r, np.broadcast_shapes(np.shape(s), np.shape(theta)))
 
     def _sac_arc_length(self) -> float:
         return 0.5 * self._axis.length
@@ -939,6 +1094,31 @@ def _relax(mesh: trimesh.Trimesh, field, step: float, iterations: int,
     return trimesh.Trimesh(onto_planes(_project(field, points, step, iterations=2)), mesh.faces, process=False)
 
 
+def _level_set_curvatures(field, points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """(concave, convex) seen from outside: the largest principal curvature of each kind (1/m, 0 or less when
+    there is none) of the surface field = 0 (negative inside) at points on it, from the field's gradient g and
+    Hessian H by central differences: the eigenvalues of the shape operator P H P / |g| in the tangent plane."""
+    offsets = np.eye(3) * step
+    centre = field(points)
+    plus = [field(points + o) for o in offsets]
+    minus = [field(points - o) for o in offsets]
+    gradient = np.stack([(a - b) / (2.0 * step) for a, b in zip(plus, minus)], axis=1)
+    hessian = np.empty((len(points), 3, 3))
+    for i in range(3):
+        hessian[:, i, i] = (plus[i] - 2.0 * centre + minus[i]) / step ** 2
+        for j in range(i + 1, 3):
+            hessian[:, i, j] = hessian[:, j, i] = (
+                field(points + offsets[i] + offsets[j]) - field(points + offsets[i] - offsets[j])
+                - field(points - offsets[i] + offsets[j]) + field(points - offsets[i] - offsets[j])) / (4.0 * step ** 2)
+    length = np.linalg.norm(gradient, axis=1)
+    normal = gradient / length[:, None]
+    first = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])))
+    tangent = np.stack([first, np.cross(normal, first)], axis=2)
+    # with the gradient outward a sphere's are +1 / radius: convex positive
+    k = np.linalg.eigvalsh(np.einsum("nia,nij,njb->nab", tangent, hessian, tangent) / length[:, None, None])
+    return -k[:, 0], k[:, 1]
+
+
 def _clip(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray) -> trimesh.Trimesh:
     """The part of a surface where (p - origin) . normal < 0, cut along the plane: a triangle across
     it keeps its part (a triangle or a quad split in two) in its winding; the crossing points are
@@ -1005,17 +1185,12 @@ class BifurcationParameters(_Member):
     KIND: ClassVar[str] = "bifurcation"
     N_ENDS: ClassVar[int] = 3
     RANGES: ClassVar[dict[str, Range]] = {
-        "aorta_radius": Range(0.0075, 0.016, "m", _AORTA_RANGE_SOURCE, diameter=True),
-        "aneurysm_radius": Range(0.015, 0.050, "m", _SAC_RANGE_SOURCE, diameter=True),
-        "aneurysm_length": Range(0.020, 0.150, "m", MODEL_LIMIT),
+        **_ANEURYSM_RANGES,
         "aortic_length": Range(0.080, 0.250, "m", MODEL_LIMIT),
         "iliac_radius": Range(0.004, 0.0125, "m", f"the iliac diameters on label, {ENDURANT_IFU}", diameter=True),
         "iliac_length": Range(0.020, 0.100, "m", MODEL_LIMIT),
         "bifurcation_angle_deg": Range(20.0, 100.0, "deg", MODEL_LIMIT),
     }
-    aorta_radius: float = 0.010
-    aneurysm_radius: float = 0.025
-    aneurysm_length: float = 0.060
     #: from the bifurcation up to the proximal end (renal level), m; the sac is centred on it
     aortic_length: float = 0.130
     #: lumen radius of both common iliac arteries, m
@@ -1026,9 +1201,7 @@ class BifurcationParameters(_Member):
     bifurcation_angle_deg: float = 50.0
 
     def _check_shape(self) -> None:
-        if self.aneurysm_radius < self.aorta_radius:
-            self._fail(f"aneurysm_radius ({self.aneurysm_radius:g}) < aorta_radius ({self.aorta_radius:g})",
-                       "the sac bulges outward")
+        super()._check_shape()
         if self.iliac_radius > self.aorta_radius:
             self._fail(f"iliac_radius ({self.iliac_radius:g}) > aorta_radius ({self.aorta_radius:g})",
                        "the iliac arteries are narrower than the aorta they branch from")
@@ -1040,6 +1213,79 @@ class BifurcationParameters(_Member):
             self._half_angle)
         if gap < 2.0 * self.iliac_radius:
             self._fail("the iliac ends would overlap", "widen the bifurcation angle or lengthen the iliacs")
+        # at the bifurcation the aorta's section is the ellipse spanning the iliacs, iliac_radius from front to back:
+        # a slot 2 iliac_radius deep, each iliac as wide (and curving around with that radius)
+        if self.iliac_radius < MIN_FOLD_RADIUS:
+            self._fail(f"the distal aorta flattens to a lumen 2 iliac_radius = {2e3 * self.iliac_radius:.3g} mm deep, "
+                       f"narrower than a wall can follow (2 MIN_FOLD_RADIUS = {2e3 * MIN_FOLD_RADIUS:g} mm)",
+                       f"widen the iliacs (iliac_radius at least {MIN_FOLD_RADIUS * 1e3:g} mm)")
+        self._check_junction_folds()
+
+    def _check_junction_folds(self) -> None:
+        """No principal curvature of the junction beyond 1 / MIN_FOLD_RADIUS, measured: the crotch between the
+        iliacs, the flattened distal aorta and its rounded bottom are fillets of a smooth union (no closed form), so
+        the curvatures are the field's own, from its Hessian (finite differences) at points on its zero set.
+
+        The points: the grid nodes within a step of the surface, 2 mm apart, then 0.67 mm apart within those
+        (the field is symmetric in x and y: one quadrant), projected onto it, up to where the aorta is a surface
+        of revolution (above it, the sac's profile is _check_sac_fold's, exactly) and short of the iliacs' ends
+        (cut away there); the worst of them is then refined by a pattern search along the surface. Against all
+        the nodes 0.3 mm apart (ten times the cost) the radii agree within 0.5 %."""
+        extension = self.iliac_radius
+
+        def field(p):
+            return self._field(p, extension)
+
+        beta = self._half_angle
+        z_b = self.bifurcation_height
+        # above: the taper, the rounded bottom's and the iliacs' fillets are behind (the iliac tubes start
+        # 1.5 iliac radii inside the aorta, their fillets reach a blend further)
+        top = z_b + self._taper + 2.0 * self._blend
+        coarse, split = 0.002, 3
+        fine = coarse / split
+        half_x = self.iliac_radius / math.cos(beta) + self.iliac_length * math.sin(beta) + 2.0 * self.iliac_radius
+        half_y = max(self.aneurysm_radius, 2.0 * self.iliac_radius)
+        axes = [np.arange(0.0, half_x + coarse, coarse), np.arange(0.0, half_y + coarse, coarse),
+                np.arange(-2.0 * self.iliac_radius, top + coarse, coarse)]
+        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        near = nodes[np.abs(field(nodes)) < coarse]
+        offsets = (np.stack(np.meshgrid(*[np.arange(split) - 0.5 * (split - 1)] * 3, indexing="ij"), axis=-1)
+                   .reshape(-1, 3) * fine)
+        nodes = (near[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+        step = 5e-5
+        ends = self.ends()
+
+        def kept(points):
+            for end in ends:
+                points = points[(points - end.center) @ end.normal < 0.0]
+            return points
+
+        points = kept(_project(field, nodes[np.abs(field(nodes)) < 0.6 * fine], step))
+        for side in (0, 1):
+            curvature = _level_set_curvatures(field, points, step)[side]
+            best = int(np.argmax(curvature))
+            worst, at = float(curvature[best]), points[best]
+            # a pattern search: the largest curvature among points around the worst on the surface, closer and
+            # closer (the samples are fine's apart: the peak may lie between them)
+            reach = fine
+            circle = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
+            ring = np.stack([np.cos(circle), np.sin(circle), np.zeros_like(circle)], axis=1)
+            pattern = np.concatenate([ring, ring[:, [0, 2, 1]], ring[:, [2, 0, 1]]])
+            for _ in range(8):
+                around = kept(_project(field, at + reach * pattern, step))
+                values = _level_set_curvatures(field, around, step)[side] if len(around) else np.zeros(1)
+                if values.max() > worst:
+                    worst, at = float(values.max()), around[int(np.argmax(values))]
+                else:
+                    reach *= 0.5
+            if worst * MIN_FOLD_RADIUS > 1.0:
+                self._fail(f"the junction curves with a {('concave', 'convex')[side]} radius of {1e3 / worst:.3g} mm "
+                           f"at {(np.round(1e3 * at, 1) + 0.0).tolist()} mm "
+                           f"({self._shown(('aorta_radius', 'iliac_radius', 'bifurcation_angle_deg'))}; measured on "
+                           "the implicit surface: no closed form there), tighter than a wall can follow "
+                           f"(MIN_FOLD_RADIUS {MIN_FOLD_RADIUS * 1e3:g} mm)",
+                           "widen the bifurcation angle (bifurcation_angle_deg) or the iliacs (iliac_radius): the "
+                           "crotch's fillet scales with both")
 
     # -- geometry
 
@@ -1075,8 +1321,7 @@ class BifurcationParameters(_Member):
     def _aorta_field(self, p: np.ndarray, extension: float) -> np.ndarray:
         x, y, z = p[:, 0], p[:, 1], p[:, 2]
         z_b = self.bifurcation_height
-        r = self.aorta_radius + (self.aneurysm_radius - self.aorta_radius) * _bump(
-            z, z_b + 0.5 * self.aortic_length, self.aneurysm_length)
+        r = self._sac_profile(z, z_b + 0.5 * self.aortic_length)
         # the section's semi-axes: from the circle above the taper to the ellipse spanning the iliacs
         beta = self._half_angle
         fade = 1.0 - _smoothstep((z - z_b) / self._taper)

@@ -13,10 +13,12 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from tissue_fmu.mesh import TetMesh
 
 from .centerline import Centerline, compute_centerline, farthest_walls
+from .distance import SurfaceDistance
 from .errors import AnatomyError
 from .remesh import remesh
 from .surface import LumenSurface, check_surface
@@ -39,6 +41,11 @@ AIM_SHORT = 0.003
 #: A centerline point whose inscribed radius is below this fraction of the target end's is in a branch
 #: (an iliac artery is about half the aorta's radius), not in the aorta where the sac is.
 BRANCH_RADIUS = 0.75
+#: The catheter's path keeps this far from the wall until it nears the point it aims at: a 6 Fr
+#: catheter's radius (1 mm) and a margin.
+PATH_CLEARANCE = 0.0015
+#: The widest sections tried for a straight approach to the sac's wall, widest first.
+MAX_SAC_CANDIDATES = 40
 #: Spacing of the catheter path's vertices along the centerline (the catheter's link is 5 mm).
 PATH_SPACING = 0.005
 
@@ -139,8 +146,8 @@ def _reach(centerline: Centerline, walls: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(reach), reach, centerline.radius)
 
 
-def _sac(centerline: Centerline, reach: np.ndarray, guard: float, reference: float) -> int:
-    """The centerline vertex whose cross-section reaches farthest: the sac, fusiform or saccular.
+def _sac_candidates(centerline: Centerline, reach: np.ndarray, guard: float, reference: float) -> np.ndarray:
+    """Centerline vertices by how far their cross-section reaches, farthest first: where the sac is.
 
     Only in the aorta (inscribed radius at least BRANCH_RADIUS x the target end's) and away from the
     ends (where the cut shapes the section): in a branch, the section across the branch's axis cuts
@@ -150,35 +157,46 @@ def _sac(centerline: Centerline, reach: np.ndarray, guard: float, reference: flo
     inside = (s > guard) & (s < s[-1] - guard)
     aorta = inside & (centerline.radius >= BRANCH_RADIUS * reference)
     candidates = np.flatnonzero(aorta if aorta.any() else inside if inside.any() else np.ones_like(inside))
-    return int(candidates[np.argmax(reach[candidates])])
+    return candidates[np.argsort(-reach[candidates], kind="stable")]
 
 
-def _wall_point(surface: LumenSurface, centerline: Centerline, index: int) -> np.ndarray:
-    """Where no section loop winds around the sac's centerline point (a cut through a slanted end): the
-    lumen vertex farthest from it within half an edge of its cross-section's plane."""
-    points = centerline.points
-    tangent = points[min(index + 1, len(points) - 1)] - points[max(index - 1, 0)]
-    tangent /= np.linalg.norm(tangent)
-    offset = surface.mesh.vertices - points[index]
-    along = np.abs(offset @ tangent)
-    band = np.flatnonzero(along <= max(0.5 * float(surface.mesh.edges_unique_length.mean()), along.min()))
-    return np.array(surface.mesh.vertices[band[np.argmax(np.linalg.norm(offset[band], axis=1))]], dtype=np.float64)
+def _clear(start: np.ndarray, aim: np.ndarray, wall_point: np.ndarray, distance: SurfaceDistance) -> bool:
+    """Whether the straight path start -> aim keeps PATH_CLEARANCE from the wall until it nears the wall
+    point it is meant to meet (within AIM_SHORT + PATH_CLEARANCE). Starting inside, a path whose every
+    sample (0.5 mm apart) is that far from the wall never crosses it."""
+    length = float(np.linalg.norm(aim - start))
+    samples = start + np.linspace(0.0, 1.0, max(2, int(length / 5e-4) + 1))[:, None] * (aim - start)
+    far = np.linalg.norm(samples - wall_point, axis=1) > AIM_SHORT + PATH_CLEARANCE
+    return bool((distance(samples[far]) > PATH_CLEARANCE).all()) if far.any() else True
 
 
-def _catheter_path(centerline: Centerline, sac_index: int, reach: float, wall_point: np.ndarray) -> np.ndarray:
-    """Up the centerline to the sac's reach before the sac's centre, then straight towards the wall point."""
+def _catheter_path(centerline: Centerline, candidates: np.ndarray, reach: np.ndarray, walls: np.ndarray,
+                   distance: SurfaceDistance) -> tuple[int, np.ndarray, np.ndarray]:
+    """(sac index, wall point, path): up the centerline to the sac's reach before the sac, then straight to
+    AIM_SHORT before the sac's farthest wall.
+
+    The farthest-reaching section whose wall the catheter can reach in the lumen: the straight part
+    starts later along the centerline where the sac's curve would make it graze the wall, and a section
+    whose farthest wall no straight path reaches (seen past a fold of the lumen) gives way to the next.
+    """
     s = centerline.arclength()
-    branch = max(float(s[sac_index]) - reach, 0.5 * float(s[sac_index]))
-    stations = np.arange(0.0, branch, PATH_SPACING)
-    along = np.stack([np.interp(np.append(stations, branch), s, centerline.points[:, k]) for k in range(3)], axis=1)
-    start = along[-1]
-    direction = wall_point - start
-    distance = float(np.linalg.norm(direction))
-    if distance <= 2 * AIM_SHORT:
-        raise AnatomyError("the sac wall is closer to the centerline than the catheter's approach needs "
-                           f"({distance * 1e3:.2f} mm): is the surface a vessel?")
-    aim = start + direction * (1.0 - AIM_SHORT / distance)
-    return np.concatenate([along, aim[None, :]])
+    for index in candidates[:MAX_SAC_CANDIDATES]:
+        wall_point = walls[index]
+        if not np.isfinite(wall_point).all():
+            continue
+        for branch in np.linspace(max(float(s[index] - reach[index]), 0.5 * float(s[index])), float(s[index]), 6):
+            start = np.array([np.interp(branch, s, centerline.points[:, k]) for k in range(3)])
+            gap = float(np.linalg.norm(wall_point - start))
+            if gap <= 2 * AIM_SHORT:
+                continue
+            aim = start + (wall_point - start) * (1.0 - AIM_SHORT / gap)
+            if _clear(start, aim, wall_point, distance):
+                stations = np.append(np.arange(0.0, branch, PATH_SPACING), branch)
+                along = np.stack([np.interp(stations, s, centerline.points[:, k]) for k in range(3)], axis=1)
+                return int(index), wall_point, np.concatenate([along, aim[None, :]])
+    raise AnatomyError("no straight approach from the centerline reaches the sac's wall inside the lumen (the "
+                       f"{MAX_SAC_CANDIDATES} widest sections tried, each keeping {PATH_CLEARANCE * 1e3:g} mm from "
+                       "the wall): is the surface a vessel with an aneurysm? (--access and --target choose the path)")
 
 
 def _thickness(surface: LumenSurface, centerline: Centerline, reach: np.ndarray, reference: float,
@@ -189,8 +207,6 @@ def _thickness(surface: LumenSurface, centerline: Centerline, reach: np.ndarray,
     no more than that point's section reaches: the far vertices of another branch (the other iliac
     artery) are far from this centerline without being a sac.
     """
-    from scipy.spatial import cKDTree
-
     distance, nearest = cKDTree(centerline.points).query(surface.mesh.vertices)
     dilation = np.minimum(distance, 1.05 * reach[nearest]) / reference
     low, high = SAC_DILATION
@@ -220,7 +236,8 @@ def build_anatomy(surface: LumenSurface, options: WallOptions | None = None, *, 
     reference = surface.ends[target].radius
     walls = farthest_walls(surface.mesh, centerline)
     reach = _reach(centerline, walls)
-    sac_index = _sac(centerline, reach, 2.0 * max(surface.ends[access].radius, reference), reference)
+    candidates = _sac_candidates(centerline, reach, 2.0 * max(surface.ends[access].radius, reference), reference)
+    sac_index, wall_point, path = _catheter_path(centerline, candidates, reach, walls, SurfaceDistance(surface.mesh))
     notes = []
     dilation = float(reach[sac_index]) / reference
     if dilation < SAC_DILATION[1]:
@@ -228,9 +245,6 @@ def build_anatomy(surface: LumenSurface, options: WallOptions | None = None, *, 
                      f"(an aneurysm is at least {SAC_DILATION[1]}x); the catheter aims at its farthest wall")
     thickness, element_sets = _thickness(surface, centerline, reach, reference, options)
     wall = build_wall(surface, thickness, options.layers, element_sets)
-    wall_point = walls[sac_index] if np.isfinite(walls[sac_index]).all() else \
-        _wall_point(surface, centerline, sac_index)
-    path = _catheter_path(centerline, sac_index, float(reach[sac_index]), wall_point)
     for note in notes:
         logger.warning("%s: %s", surface.source, note)
     return Anatomy(surface=surface, wall=wall, centerline=centerline, access=access, target=target,

@@ -12,6 +12,7 @@ which its PyPI wheel links even when nothing is drawn); they are named when miss
 """
 from __future__ import annotations
 
+import importlib
 import logging
 import math
 
@@ -29,13 +30,23 @@ FEATURE_ANGLE = math.radians(40.0)
 SYSTEM_PACKAGES = "libglu1-mesa libxcursor1 libxft2 libxinerama1"
 
 
-def _gmsh():
+def gmsh_problem() -> str | None:
+    """Why gmsh cannot be loaded here, with the fix; None when it can."""
     try:
-        import gmsh
+        importlib.import_module("gmsh")
     except (ImportError, OSError) as exc:  # OSError: the wheel's library misses a system library
-        raise AnatomyError(f"remeshing needs gmsh, which could not be loaded ({exc}): install the project's "
-                           f"dependencies (pip install -e .) and gmsh's system libraries (apt-get install "
-                           f"{SYSTEM_PACKAGES}), or keep the surface's own triangles (remesh='never')") from None
+        return (f"remeshing needs gmsh, which could not be loaded ({exc}): install the project's dependencies "
+                f"(pip install -e .) and gmsh's system libraries (apt-get install {SYSTEM_PACKAGES}), or keep the "
+                "surface's own triangles (remesh='never')")
+    return None
+
+
+def _gmsh():
+    problem = gmsh_problem()
+    if problem:
+        raise AnatomyError(problem)
+    import gmsh
+
     return gmsh
 
 
