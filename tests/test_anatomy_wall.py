@@ -8,6 +8,9 @@ tolerance; given the uniform 1.5 mm, it is the exact parallel shell, checked by 
 """
 from __future__ import annotations
 
+import signal
+import threading
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -168,3 +171,26 @@ def test_remeshing_a_fine_segmentation_keeps_the_shape_and_makes_regular_triangl
     assert sorted(round(float(e.center[2]), 5) for e in remeshed.ends) == [0.0, 0.13]
     wall = build_wall(remeshed, H, layers=2)
     assert wall.quality()["min_radius_ratio"] > 0.1
+
+
+def _sigpipe_ignored() -> bool:
+    """Whether the process ignores SIGPIPE (the kernel's view: Python caches its own)."""
+    status = open("/proc/self/status").read()
+    return bool(int(status.split("SigIgn:")[1].split()[0], 16) >> (signal.SIGPIPE - 1) & 1)
+
+
+def test_remeshing_leaves_sigpipe_ignored_in_the_main_thread_and_in_others():
+    """gmsh's initialisation restores SIGPIPE's default (terminate): a process that remeshed and then
+    wrote to a closed pipe (a run's worker gone) died with exit code 141 instead of a BrokenPipeError."""
+    from anatomy.remesh import gmsh_problem, remesh
+
+    if gmsh_problem():
+        pytest.skip(gmsh_problem())
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.02)
+    assert _sigpipe_ignored()
+    remesh(sphere, 0.005)
+    assert _sigpipe_ignored()
+    worker = threading.Thread(target=remesh, args=(sphere, 0.005))
+    worker.start()
+    worker.join()
+    assert _sigpipe_ignored()

@@ -12,9 +12,13 @@ which its PyPI wheel links even when nothing is drawn); they are named when miss
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import importlib
 import logging
 import math
+import signal
+import threading
 
 import numpy as np
 import trimesh
@@ -50,13 +54,31 @@ def _gmsh():
     return gmsh
 
 
+@contextlib.contextmanager
+def _sigpipe_kept():
+    """gmsh's initialisation sets SIGPIPE back to the system's default, which kills the process on a
+    write to a closed pipe; Python ignores it (a BrokenPipeError instead), and so must the process
+    after remeshing (a run that follows would die with its worker's pipe)."""
+    previous = signal.getsignal(signal.SIGPIPE)
+    try:
+        yield
+    finally:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGPIPE, previous)
+        elif previous == signal.SIG_IGN:  # signal.signal is the main thread's; the C call is anyone's
+            ctypes.CDLL(None).signal(signal.SIGPIPE, ctypes.c_void_p(1))   # SIG_IGN
+        else:
+            logger.warning("gmsh reset SIGPIPE to its default in a thread that cannot restore its handler")
+
+
 def remesh(mesh: trimesh.Trimesh, edge_length: float) -> trimesh.Trimesh:
     """The surface meshed again with triangles of about ``edge_length`` (m); orientation is not kept
     (gmsh's patches are wound independently): check the result with :func:`anatomy.surface.check_surface`."""
     if not (math.isfinite(edge_length) and edge_length > 0):
         raise AnatomyError(f"edge_length must be a length > 0 in metres (got {edge_length!r}), e.g. 0.003")
     gmsh = _gmsh()
-    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    with _sigpipe_kept():
+        gmsh.initialize(readConfigFiles=False, interruptible=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", 1)       # the same triangles on every machine
