@@ -409,7 +409,7 @@ def _build_anatomy(args, surface, stage):
 
 
 def parse_shape(items: list[str] | None) -> dict:
-    """``--shape sac_diameter=0.06``: a parametric aneurysm's parameters (TOML values)."""
+    """``--shape aneurysm_radius=0.03``: a parametric aneurysm's parameters (TOML values)."""
     import tomllib
 
     from anatomy.errors import AnatomyError
@@ -418,7 +418,7 @@ def parse_shape(items: list[str] | None) -> dict:
     for item in items or []:
         key, sep, text = item.partition("=")
         if not sep or not key.strip():
-            raise AnatomyError(f"--shape {item!r}: write name=value, e.g. sac_diameter=0.06")
+            raise AnatomyError(f"--shape {item!r}: write name=value, e.g. aneurysm_radius=0.03")
         try:
             shape[key.strip()] = tomllib.loads(f"v = {text}")["v"]
         except tomllib.TOMLDecodeError:
