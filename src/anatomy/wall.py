@@ -138,26 +138,13 @@ def build_wall(surface: LumenSurface, thickness=0.0015, layers: int = 2,
         raise AnatomyError(f"{surface.source}: the wall is not a valid mesh ({exc}): remesh the surface") from None
     quality = wall.quality()
     if quality["min_radius_ratio"] < MIN_RADIUS_RATIO:
-        worst = int(np.argmin(_radius_ratios(wall)))
+        worst = int(np.argmin(wall.radius_ratios()))
         raise AnatomyError(f"{surface.source}: the wall has a sliver (radius ratio {quality['min_radius_ratio']:.3g}, "
                            f"below {MIN_RADIUS_RATIO}) around {place(points[tets[worst]].mean(axis=0), surface)}: "
                            "remesh the surface (a sliver of a triangle makes a sliver of the wall)")
     logger.info("wall: %d nodes, %d tetrahedra, worst radius ratio %.3f, %.3g-%.3g mm thick", wall.n_nodes,
                 wall.n_tets, quality["min_radius_ratio"], t.min() * 1e3, t.max() * 1e3)
     return wall
-
-
-def _radius_ratios(wall: TetMesh) -> np.ndarray:
-    """Each tetrahedron's 3 r_in / r_circ (1 for a regular one), to find the worst."""
-    p = wall.points[wall.tets]
-    a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    volume = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
-    numerator = (np.einsum("ij,ij->i", a, a)[:, None] * np.cross(b, c) + np.einsum("ij,ij->i", b, b)[:, None]
-                 * np.cross(c, a) + np.einsum("ij,ij->i", c, c)[:, None] * np.cross(a, b))
-    r_circ = np.linalg.norm(numerator, axis=1) / (12.0 * volume)
-    faces = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]
-    area = sum(0.5 * np.linalg.norm(np.cross(p[:, j] - p[:, i], p[:, k] - p[:, i]), axis=1) for i, j, k in faces)
-    return 3.0 * (3.0 * volume / area) / r_circ
 
 
 def lumen_of(wall: TetMesh, inner: str = "inner") -> trimesh.Trimesh:

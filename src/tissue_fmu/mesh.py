@@ -286,12 +286,8 @@ class TetMesh:
         surface_nodes, local = np.unique(faces, return_inverse=True)
         return surface_nodes, local.reshape(-1, 3).astype(np.int64)
 
-    def quality(self) -> dict:
-        """Counts and element-quality statistics.
-
-        radius ratio = 3 r_in / r_circ (1 for a regular tet, -> 0 for slivers);
-        edge ratio = longest / shortest edge of a tet (1 for a regular tet).
-        """
+    def radius_ratios(self) -> np.ndarray:
+        """(m,) 3 r_in / r_circ of each tet: 1 for a regular tet, -> 0 for slivers."""
         volumes = self.volumes()
         p0 = self.points[self.tets[:, 0]]
         a = self.points[self.tets[:, 1]] - p0
@@ -309,7 +305,16 @@ class TetMesh:
             np.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0]), axis=2
         ).sum(axis=1)
         r_in = 3.0 * volumes / areas
-        radius_ratio = 3.0 * r_in / r_circ
+        return 3.0 * r_in / r_circ
+
+    def quality(self) -> dict:
+        """Counts and element-quality statistics.
+
+        radius ratio: :meth:`radius_ratios`; edge ratio = longest / shortest edge of a tet (1 for a
+        regular tet).
+        """
+        volumes = self.volumes()
+        radius_ratio = self.radius_ratios()
         edges = _edge_lengths(self.points, self.tets)
         edge_ratio = edges.max(axis=1) / edges.min(axis=1)
         return {
