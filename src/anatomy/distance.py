@@ -2,13 +2,19 @@
 
 A k-d tree of the triangles' centroids bounds the search: a few nearest centroids give an upper
 bound, and only the triangles whose centroid lies within that bound plus their own reach can be
-nearer; those are measured exactly (Ericson's closest point on a triangle, by Voronoi region).
+nearer; those are measured exactly by the narrow phase's closest point on a triangle
+(:func:`haptic_fmu.geometry.closest_point_triangle`, Ericson's, by Voronoi region).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import trimesh
+from numba import njit
 from scipy.spatial import cKDTree
+
+from haptic_fmu.geometry import closest_point_triangle
 
 #: pairs (point, triangle) or (triangle, grid column) handled at once: bounds the memory
 CHUNK = 1 << 18
@@ -62,37 +68,16 @@ def chunks(count: np.ndarray):
         lo = hi
 
 
+@njit(cache=True)
 def _point_triangle_distance(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(m,) distance from each point to its triangle (Ericson's closest point, by Voronoi region)."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    ab, ac, ap = b - a, c - a, points - a
-    bp, cp = points - b, points - c
-
-    def dot(x, y):
-        return np.einsum("ij,ij->i", x, y)
-
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    # barycentric (v, w) of the closest point as a + v ab + w ac, by region in increasing priority
-    # (Ericson's order reversed: on a shared boundary the regions agree, on degenerate ones his wins)
-    v, w = _ratio(vb, va + vb + vc), _ratio(vc, va + vb + vc)               # the face
-    t = _ratio(d4 - d3, (d4 - d3) + (d5 - d6))
-    zero, one = np.zeros_like(v), np.ones_like(v)
-    regions = [
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 1.0 - t, t),            # edge bc
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), zero, _ratio(d2, d2 - d6)),        # edge ac
-        ((d6 >= 0) & (d5 <= d6), zero, one),                                   # vertex c
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), _ratio(d1, d1 - d3), zero),        # edge ab
-        ((d3 >= 0) & (d4 <= d3), one, zero),                                   # vertex b
-        ((d1 <= 0) & (d2 <= 0), zero, zero),                                   # vertex a
-    ]
-    for region, rv, rw in regions:
-        v, w = np.where(region, rv, v), np.where(region, rw, w)
-    return np.linalg.norm(ap - v[:, None] * ab - w[:, None] * ac, axis=1)
-
-
-def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
-    """num / den, 0 where den is 0 (a degenerate triangle or edge, whose region then does not matter)."""
-    return np.where(den != 0, num, 0.0) / np.where(den != 0, den, 1.0)
+    """(m,) distance from each point to its triangle: the narrow phase's closest point (Ericson's, by
+    Voronoi region), one pair at a time."""
+    out = np.empty(points.shape[0])
+    for i in range(points.shape[0]):
+        a, b, c = triangles[i, 0], triangles[i, 1], triangles[i, 2]
+        wa, wb, wc = closest_point_triangle(points[i, 0], points[i, 1], points[i, 2], a, b, c)
+        dx = points[i, 0] - (wa * a[0] + wb * b[0] + wc * c[0])
+        dy = points[i, 1] - (wa * a[1] + wb * b[1] + wc * c[1])
+        dz = points[i, 2] - (wa * a[2] + wb * b[2] + wc * c[2])
+        out[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return out
