@@ -51,7 +51,7 @@ from .precompute import tensors_to_csr
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BACKENDS", "TangentFactorization", "backend_available", "default_backend", "sparse_lu"]
+__all__ = ["BACKENDS", "RestFactorization", "TangentFactorization", "backend_available", "default_backend", "sparse_lu"]
 
 #: Woodbury (low-rank) correction up to this many free dofs on the super-threshold elements'
 #: nodes; above it the tangent is assembled and factorised (compared in bench_tissue_step.py).
@@ -512,3 +512,46 @@ class TangentFactorization:
     @property
     def free_dofs(self) -> np.ndarray:
         return self._free_dofs
+
+
+class RestFactorization(TangentFactorization):
+    """The frame-budgeted step's preconditioner: the rest factor ``A_0 = M + h C + h^2 K_0`` only.
+
+    It never factorises nor adds Woodbury columns inside a frame, so a budgeted step costs its
+    iterations and nothing else: one factor solve and one system product each. It is the step matrix
+    while no element is above the ETMM threshold (``exact``: the step is then the exact one); above
+    it the Krylov solve it preconditions is cut at the budget and the residual left is reported.
+
+    Why the rest factor and not the tangent refactorised in the background (Courtecuisse et al.'s
+    asynchronous preconditioner): measured on the default wall under 5 N (bench_tissue_step.py
+    section 0, docs/performance.md), a SuperLU tangent factor 8-15 frames old bought no fewer
+    iterations than the rest factor (the loaded wall's tangent changes every frame), its solves cost
+    1.6x the rest factor's CHOLMOD solves, and its factorisation took the other core from the 1 kHz
+    loop; at four iterations the rest factor gave the same error in 25.6 ms at worst against 40.3 ms.
+    """
+
+    name = "rest"
+
+    def update(self, h: float) -> None:
+        """Prepare for the solve of the next frame with step ``h`` at the force field's state."""
+        if h != self._h:
+            self._set_step(h)
+        self.mode = "rest"
+        ids = self.force_field.nonlinear_element_ids()
+        # None: no assembled tangent (hyperelastic), the rest factor only approximates it
+        self._approximate = ids is None or (
+            ids.size > 0 and bool((self._free_index[3 * self.force_field.active_tets[ids]] >= 0).any()))
+
+    def prepare(self, h: float) -> None:
+        """Factorise the rest matrix for step ``h`` now (before the first frame, not in it)."""
+        if h != self._h:
+            self._set_step(h)
+
+    def record_iterations(self, iterations: int) -> None:
+        """Nothing to schedule: the factor never changes."""
+
+    def rest_inverse_block(self, nodes) -> np.ndarray:
+        """(A_0^-1)[d, d] for the free dofs d of ``nodes`` (node-major), from cached columns: the
+        compliance of the wall at rest stiffness (the step matrix's own below the ETMM threshold)."""
+        dofs, rows = self._zc.ensure(nodes, self._lu_rest)
+        return self._zc.rows[np.ix_(rows, dofs)]

@@ -51,6 +51,8 @@ LIMITS = {
                                     "limited again by MAX_EXPLICIT_WORK"),
     "cg_max_iterations": Limit(1, 1_000_000, "Krylov iterations per implicit solve; 1e6 is beyond any converging "
                                              "solve of these meshes (the iterations cost about 0.1 ms each)"),
+    "budget_iterations": Limit(1, 1000, "Krylov iterations per budgeted frame; each is a factor solve of a few "
+                                        "milliseconds, so beyond 1000 the budget is not a frame's"),
     "compliance_tolerance": Limit(1e-15, 0.5, "a relative residual below 1e-15 is under round-off; above 0.5 the "
                                               "compliance is not solved for"),
     **{name: Limit(1e-4, 1.0, "AAA generator lengths are millimetres to centimetres (docs/design.md section 7); "
@@ -102,6 +104,11 @@ VARIABLES = (
     parameter("mesh_file", "", "tetrahedral mesh file (meshio format); empty: built-in AAA generator"),
     parameter("substeps", 0, "explicit substeps per internal step (0: automatic)"),
     parameter("cg_max_iterations", int(_defaults.cg_max_iterations), "maximum Krylov iterations"),
+    parameter("implicit_step", str(_defaults.implicit_step), "exact (solved to cg_tolerance, whatever the frame "
+              "costs) or budgeted (at most budget_iterations per frame, preconditioned by the rest factor; the "
+              "residual left is the solver_residual output)"),
+    parameter("budget_iterations", int(_defaults.budget_iterations), "budgeted step: Krylov iterations per frame "
+              "(each one factor solve)"),
     parameter("compliance_tolerance", 1e-2, "relative residual of the compliance solves when the factorisation "
               "lags the tangent (W is Contact's model of the wall between frames)"),
     *(parameter(name, value, f"AAA generator: {name.replace('_', ' ')}", "m") for name, value in AAA_SIZES.items()),
@@ -143,6 +150,7 @@ def _parameters(v) -> TissueParameters:
         young_modulus=v.young_modulus, poisson_ratio=v.poisson_ratio, density=v.density, viscosity=v.viscosity,
         law=v.law, integrator=v.integrator, substeps="auto" if v.substeps == 0 else v.substeps,
         cg_tolerance=v.cg_tolerance, cg_max_iterations=v.cg_max_iterations, clamp=clamp, active_region=active,
+        implicit_step=v.implicit_step, budget_iterations=v.budget_iterations,
         nonlinear_strain_threshold=v.nonlinear_strain_threshold,
     )
 
@@ -193,6 +201,8 @@ class TissueFmu:
         model = TissueModel(mesh, params)
         if params.integrator == "explicit":
             _check_explicit_work(model, v.internal_step)
+        else:  # the rest factorisation and the kernels' loading here, not in the first frame
+            model.prepare(v.internal_step)
         if (model.n_surface, len(model.surface_triangles)) != (v.n_surface_nodes, v.n_surface_triangles):
             raise ValueError(
                 f"the mesh has {model.n_surface} surface nodes and {len(model.surface_triangles)} surface "

@@ -18,7 +18,7 @@ from ._checks import is_finite_real, is_integer
 from .forcefield import TensorMassForceField
 from .errors import StabilityError, TissueError
 from .integrators import BackwardEuler, JacobiPreconditioner, StepStatistics, SymplecticEuler
-from .factorization import TangentFactorization
+from .factorization import RestFactorization, TangentFactorization
 from .materials import LAWS
 from .mesh import TetMesh, aaa_mesh, load_mesh
 from .precompute import signed_volumes
@@ -29,6 +29,10 @@ __all__ = ["TissueError", "StabilityError", "TissueParameters", "TissueModel"]
 
 INTEGRATORS = ("explicit", "implicit")
 PRECONDITIONERS = ("factorized", "jacobi")
+#: "exact": each implicit step solved to cg_tolerance, its preconditioner kept equal to the step matrix
+#: inside the frame; "budgeted": at most budget_iterations Krylov iterations per frame, preconditioned
+#: by the rest factor (tissue_fmu.factorization.RestFactorization), the residual reported.
+IMPLICIT_STEPS = ("exact", "budgeted")
 # A step that moves a node farther than this many mesh diameters has diverged.
 DIVERGENCE_FACTOR = 10.0
 #: Green strain above which a warning says the laws are used outside their range (E = 1 is a
@@ -85,6 +89,8 @@ class TissueParameters:
     cg_tolerance: float = 1e-6  # relative residual of the implicit solve
     cg_max_iterations: int = 1000
     preconditioner: str = "factorized"  # implicit: "factorized" (the step matrix, kept exact) or "jacobi"
+    implicit_step: str = "exact"  # implicit: "exact" or "budgeted" (IMPLICIT_STEPS)
+    budget_iterations: int = 4  # budgeted: Krylov iterations per frame (each one factor solve)
     clamp: tuple[str, ...] = ("inlet", "outlet")  # node sets held at rest
     active_region: tuple[float, float, float, float] | None = None  # (cx, cy, cz, radius) m
     nonlinear_region: tuple[float, float, float, float] | None = None  # where ETMM may correct
@@ -119,6 +125,11 @@ class TissueParameters:
             raise TissueError(f"cg_max_iterations must be an integer >= 1 (got {self.cg_max_iterations!r}), e.g. 1000")
         if self.preconditioner not in PRECONDITIONERS:
             raise TissueError(f"preconditioner must be one of {PRECONDITIONERS} (got {self.preconditioner!r})")
+        if self.implicit_step not in IMPLICIT_STEPS:
+            raise TissueError(f"implicit_step must be one of {IMPLICIT_STEPS} (got {self.implicit_step!r})")
+        if not is_integer(self.budget_iterations) or self.budget_iterations < 1:
+            raise TissueError(f"budget_iterations must be an integer >= 1 (got {self.budget_iterations!r}), e.g. 4: "
+                              "the Krylov iterations a budgeted step may spend per frame")
         if isinstance(self.clamp, str) or not all(isinstance(name, str) for name in self.clamp):
             raise TissueError(
                 f"clamp must be a sequence of node set names (got {self.clamp!r}), e.g. ('inlet', 'outlet')"
@@ -319,13 +330,17 @@ class TissueModel:
                 self.force_field, self.masses, self.fixed, p.substeps,
                 critical_time_step=self._critical_step(),
             )
-        if p.preconditioner == "factorized":
-            preconditioner = TangentFactorization(self.force_field, self.masses, self.fixed)
-        else:
+        budgeted = p.implicit_step == "budgeted"
+        if p.preconditioner == "jacobi":
             preconditioner = JacobiPreconditioner(self.force_field, self.masses, self.fixed)
+        elif budgeted:
+            preconditioner = RestFactorization(self.force_field, self.masses, self.fixed)
+        else:
+            preconditioner = TangentFactorization(self.force_field, self.masses, self.fixed)
         return BackwardEuler(
-            self.force_field, self.masses, self.fixed, p.cg_tolerance, p.cg_max_iterations,
-            viscous=p.viscosity > 0.0, preconditioner=preconditioner,
+            self.force_field, self.masses, self.fixed, p.cg_tolerance,
+            int(p.budget_iterations) if budgeted else p.cg_max_iterations,
+            viscous=p.viscosity > 0.0, preconditioner=preconditioner, budgeted=budgeted,
         )
 
     def _critical_step(self) -> float:
@@ -338,6 +353,16 @@ class TissueModel:
     # ----------------------------------------------------------------------------------
     # Inputs and stepping
     # ----------------------------------------------------------------------------------
+
+    def prepare(self, dt: float) -> None:
+        """Do before the first step what it would otherwise pay for: the kernels' compilation (or
+        cache load) and the implicit step's rest factorisation for steps of ``dt``. Changes no result."""
+        if not is_finite_real(dt) or dt <= 0.0:
+            raise TissueError(f"dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
+        self.force_field.add_forces(self.displacement, self.velocity, np.zeros_like(self.displacement))
+        preconditioner = getattr(self.integrator, "preconditioner", None)
+        if isinstance(preconditioner, TangentFactorization) and preconditioner._h != float(dt):
+            preconditioner._set_step(float(dt))
 
     def set_contact_force(self, forces) -> None:
         """Nodal forces (N) on the surface nodes: (n_surface, 3) or flat (n_surface*3,), held until changed."""
@@ -524,9 +549,17 @@ class TissueModel:
             pc = self._compliance_factors.get(h)
             if pc is None:
                 pc = self._compliance_factors[h] = TangentFactorization(ff, self.masses, self.fixed)
-        pc.update(h)
         free_index = pc._free_index
         free_cols = np.flatnonzero(free_index[dofs] >= 0)
+        if isinstance(pc, RestFactorization):
+            # the budgeted step: the wall's compliance at rest stiffness from cached columns (exact
+            # below the ETMM threshold, softer than the stiffened wall above it), never a solve to
+            # tolerance inside the frame
+            pc.prepare(h)
+            w = np.zeros((dofs.size, dofs.size))
+            w[np.ix_(free_cols, free_cols)] = (h * h) * pc.rest_inverse_block(nodes)
+            return w
+        pc.update(h)
         x = pc.inverse_block(nodes)  # exact modes: cached columns of A_0^-1 (+ Woodbury), O(k p)
         if x is None:  # a lagging tangent factor or hyperelastic: solve, refine against the true matrix
             rhs = np.zeros((pc.free_dofs.size, free_cols.size))
@@ -607,6 +640,7 @@ class TissueModel:
     @property
     def solver_residual(self) -> float:
         return self._statistics.relative_residual
+
 
     @property
     def solver_converged(self) -> bool:
