@@ -85,6 +85,45 @@ def test_array_input_round_trip_and_outputs_match_model(tissue_fmu):
     assert energy > 0
 
 
+@pytest.mark.parametrize("value", [0, 1001])
+def test_a_budget_outside_its_range_is_refused_when_initialization_ends(tissue_fmu, value):
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.set("budget_iterations", value)
+        fmu.expect_error(fmu.initialize, "budget_iterations", "range")
+
+
+def test_the_budgeted_step_through_the_fmu_is_the_models_and_reports_its_work(tissue_fmu):
+    """implicit_step = "budgeted" set by an importer: the FMU computes what the model does (bit for
+    bit), and under a load that stiffens the wall its outputs say the budget was spent and what
+    residual it left."""
+    mesh = aaa_mesh()
+    surface_nodes, _ = mesh.surface()
+    points = mesh.points[surface_nodes]
+    pushed = np.argsort(np.linalg.norm(points - [0.0265, 0.0, 0.065], axis=1))[:4]
+    force = np.zeros((len(surface_nodes), 3))
+    force[pushed, 0] = -5.0 / 4  # 5 N into the sac
+    with fmu_instance(tissue_fmu) as fmu:
+        fmu.set("implicit_step", "budgeted")
+        fmu.set("budget_iterations", 2)
+        fmu.set("viscosity", 50.0)
+        fmu.initialize()
+        fmu.set("contact_force", force.ravel())
+        record = []
+        for k in range(4):
+            fmu.slave.doStep(k * STEP, STEP)
+            record.append((int(fmu.get("solver_iterations")), float(fmu.get("solver_residual")),
+                           float(fmu.get("nonlinear_fraction"))))
+        positions = fmu.get("surface_positions").reshape(-1, 3)
+        assert fmu.errors() == []
+    model = TissueModel(mesh, TissueParameters(viscosity=50.0, implicit_step="budgeted", budget_iterations=2))
+    model.set_contact_force(force)
+    for k in range(4):
+        model.step(k * STEP, STEP)
+    np.testing.assert_array_equal(positions, model.surface_positions())
+    iterations, residual, nonlinear = record[-1]
+    assert nonlinear > 0 and iterations == 2 and residual > 1e-6
+
+
 @pytest.mark.parametrize("slots", [[0, 1, 2], [1, 4, 5]], ids=["first slots", "scattered slots"])
 def test_the_compliance_output_is_the_models_w_at_the_named_slots(tissue_fmu, slots):
     """After a step, W of the nodes named in patch_nodes (-1 elsewhere) is the model's compliance of
@@ -130,6 +169,7 @@ def test_the_compliance_output_is_the_models_w_at_the_named_slots(tissue_fmu, sl
         ("poisson_ratio", -1.0, "poisson_ratio"),
         ("density", 0.0, "density"),
         ("law", "plastic", "law"),
+        ("implicit_step", "fast", "implicit_step"),
         ("mesh_file", "/nonexistent/mesh.vtu", "mesh"),
         ("n_surface_nodes", 17, "n_surface_nodes"),
     ],

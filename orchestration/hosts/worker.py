@@ -76,7 +76,8 @@ class Command:
     SET_INPUTS                input indices (None: all)                   None (values are in the slots)
     GET_OUTPUTS               -                                           None (values are in the slots)
     STEP                      t, h, input indices (None: all, (): none)   (terminate_requested, early_return,
-                                                                           last_successful_time)
+                                                                           last_successful_time, seconds the
+                                                                           step took in the worker)
     TERMINATE                 -                                           None, then the worker exits
     ========================  ==========================================  =================================
     """
@@ -132,6 +133,7 @@ class WorkerFmu:
         self.terminate_requested = False
         self.early_return = False
         self.last_successful_time = 0.0
+        self.last_step_seconds = None  # the last step's time in the worker (the algorithm's step cost)
         self._logger = logging.getLogger(f"orchestration.fmu.{name}")
         self._process = None
         self._conn = None
@@ -246,7 +248,8 @@ class WorkerFmu:
             raise RuntimeError(f"{self.name}: finish_step() without start_step()")
         call, t_end = self._pending
         self._pending = None
-        self.terminate_requested, self.early_return, self.last_successful_time = self._receive(call)
+        (self.terminate_requested, self.early_return, self.last_successful_time,
+         self.last_step_seconds) = self._receive(call)
         self._time = self.last_successful_time
         return self._output_views  # views of the shared block: valid until the next step
 
@@ -564,9 +567,11 @@ def _worker_main(conn, name: str) -> None:
                 instance = host.instance
                 if which != ():
                     instance.push(which)
+                started = time.perf_counter()
                 result = host.step(t, h)
                 instance.pull()
-                payload = (result.terminate_requested, result.early_return, result.last_successful_time)
+                payload = (result.terminate_requested, result.early_return, result.last_successful_time,
+                           time.perf_counter() - started)
             elif command == Command.TERMINATE:
                 break
             else:

@@ -31,7 +31,13 @@ def format_summary(summary: dict, units: dict[str, str]) -> str:
     if len(warnings) > 5:
         lines.append(f"  WARNING: and {len(warnings) - 5} more (summary.json lists them)")
     for name, comp in summary["components"].items():
-        lines.append(f"  {name:10s} {comp['rate_hz']:8.6g} Hz  {comp['steps']:7d} steps  busy {comp['busy_wall_s']:6.2f} s")
+        line = f"  {name:10s} {comp['rate_hz']:8.6g} Hz  {comp['steps']:7d} steps  busy {comp['busy_wall_s']:6.2f} s"
+        cost = comp.get("step_cost")
+        # every step counts: the worst, and the steps longer than their period in real time
+        if cost:
+            line += (f"  step median {1e3 * cost['median_s']:.3g}, p99 {1e3 * cost['p99_s']:.3g}, max "
+                     f"{1e3 * cost['max_s']:.3g} ms; {cost['over_budget']} over {1e3 * cost['budget_s']:.3g} ms")
+        lines.append(line)
     for ref, peak in summary.get("peaks", {}).items():
         lines.append(f"  peak {ref:32s} {peak['value']:.4g}{unit(ref)} at {peak['time_s']:.3f} s")
     for ref, e in summary.get("energy", {}).items():

@@ -50,6 +50,7 @@ from orchestration.errors import FmuCallError, OrchestrationError
 from orchestration.observers.base import Observer
 from orchestration.plan.schedule import Schedule
 from orchestration.run.compiled_loop import CompiledLoop, load_program_runner
+from orchestration.run.step_costs import StepCosts
 from orchestration.scene.model import ComponentSpec, ConnectionSpec, ORDERINGS, Ordering, Scene
 
 logger = logging.getLogger(__name__)
@@ -104,6 +105,7 @@ class Component:
     steps: int = 0
     busy: float = 0.0                       # wall seconds inside its calls (or in flight)
     started_at: float = 0.0
+    costs: StepCosts | None = None          # each step's cost, as its host or the compiled loop measured it
     routes: list[Route] = field(default_factory=list)
     observed: list[str] = field(default_factory=list)
     histories: dict[str, list] = field(default_factory=dict)  # per port: its consumers' histories
@@ -217,7 +219,8 @@ class MultirateAlgorithm:
             spec = scene.components[name]
             step = int(spec.step * self.base)
             self.components[name] = Component(spec=spec, rank=rank, step=step,
-                                              end=-(-self.end // step) * step)
+                                              end=-(-self.end // step) * step,
+                                              costs=StepCosts(float(Fraction(step, self.base))))
         self.ordered = list(self.components.values())
         for spec in scene.components.values():
             if spec.is_continuous:
@@ -409,7 +412,11 @@ class MultirateAlgorithm:
             raise
         except Exception as exc:
             raise FmuCallError(comp.name, "fmi3DoStep", t / self.base, f"{type(exc).__name__}: {exc}") from exc
-        comp.busy += clock() - comp.started_at
+        elapsed = clock() - comp.started_at
+        comp.busy += elapsed
+        # the FMU's own time where its host measured it (a worker: without the master's waiting)
+        measured = getattr(comp.host, "last_step_seconds", None)
+        comp.costs.add(elapsed if measured is None else measured)
         comp.running = False
         comp.time = t + comp.step
         comp.steps += 1

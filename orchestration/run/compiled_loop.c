@@ -38,7 +38,20 @@ typedef struct {
     int64_t started_ns;
     bool flags[4];                /* eventHandlingNeeded, terminateSimulation, earlyReturn */
     double last_time;             /* lastSuccessfulTime */
+    int64_t *cost_bins;           /* each step's cost (OP_BEGIN to OP_END) counted in its bin (step_costs.py) */
+    int64_t budget_ns;            /* a step's period in real time */
+    int64_t cost_count;           /* steps timed, the longest and those over budget, since the program started */
+    int64_t cost_max_ns;
+    int64_t cost_over;
 } Component;
+
+/* The bin of a cost in ns, as orchestration.run.step_costs.cost_bin: unit bins below 128 ns, then 64
+ * bins per octave (1.6 % wide). */
+static int64_t cost_bin(int64_t ns) {
+    if (ns < 128) return ns < 0 ? 0 : ns;
+    int k = 63 - __builtin_clzll((unsigned long long)ns);
+    return 128 + (int64_t)(k - 7) * 64 + ((ns >> (k - 6)) & 63);
+}
 
 /* An input port (set from float64 values) or a group of observed ports of one type (read). */
 typedef struct {
@@ -237,7 +250,14 @@ Result run_program(const int64_t *ops, int64_t n_ops, int64_t t0, int64_t base, 
             }
             case OP_END: {
                 Component *c = components + op[1];
-                c->busy_ns += now_ns() - c->started_ns;
+                int64_t elapsed = now_ns() - c->started_ns;
+                c->busy_ns += elapsed;
+                if (c->cost_bins) {
+                    c->cost_bins[cost_bin(elapsed)]++;
+                    c->cost_count++;
+                    if (elapsed > c->cost_max_ns) c->cost_max_ns = elapsed;
+                    if (elapsed > c->budget_ns) c->cost_over++;
+                }
                 break;
             }
             case OP_COPY:

@@ -78,7 +78,8 @@ NO_KEY = -2 ** 63
 class _Component(ctypes.Structure):
     _fields_ = [("instance", c_void_p), ("do_step", c_void_p), ("logged_errors", c_void_p),
                 ("errors_seen", c_int64), ("step", c_int64), ("busy_ns", c_int64), ("started_ns", c_int64),
-                ("flags", c_bool * 4), ("last_time", c_double)]
+                ("flags", c_bool * 4), ("last_time", c_double), ("cost_bins", c_void_p), ("budget_ns", c_int64),
+                ("cost_count", c_int64), ("cost_max_ns", c_int64), ("cost_over", c_int64)]
 
 
 class _Port(ctypes.Structure):
@@ -326,6 +327,8 @@ class CompiledLoop:
         record.do_step = _address(instance.library.functions["fmi3DoStep"])
         record.logged_errors = _address(instance.logged_errors)
         record.step = comp.step
+        record.cost_bins = comp.costs.bins.ctypes.data  # counted in place (the array lives as long as comp)
+        record.budget_ns = comp.costs.budget_ns
         for route in comp.routes:
             if route.parameter:
                 continue
@@ -643,6 +646,7 @@ class CompiledLoop:
         for member in taking_part:
             record = records[member.comp.rank]
             record.busy_ns = 0
+            record.cost_count = record.cost_max_ns = record.cost_over = 0
             record.errors_seen = int(member.instance.logged_errors[0])
             for route, last in member.last_values.items():
                 port = ports[member.port_index[route]]
@@ -679,7 +683,9 @@ class CompiledLoop:
         self._replay(template, t0, made, opened)
         for member in taking_part:  # the binding's, the host's and the routes' view of where each is
             comp = member.comp
-            comp.busy += records[comp.rank].busy_ns * 1e-9
+            record = records[comp.rank]
+            comp.busy += record.busy_ns * 1e-9
+            comp.costs.counted(record.cost_count, record.cost_max_ns, record.cost_over)
             for route, last in member.last_values.items():
                 port = ports[member.port_index[route]]
                 if port.sets:

@@ -261,7 +261,8 @@ class Simulation:
             "real_time_factor": simulated / wall if wall > 0 else None,
             "components": {
                 c.name: {"step_s": algorithm.seconds(c.step), "rate_hz": algorithm.base / c.step, "steps": c.steps,
-                         "busy_wall_s": c.busy, "hosting": self.hosting_of(c.spec)}
+                         "busy_wall_s": c.busy, "hosting": self.hosting_of(c.spec),
+                         **({"step_cost": c.costs.report()} if c.costs.count else {})}
                 for c in algorithm.ordered
             },
             **statistics.report(),

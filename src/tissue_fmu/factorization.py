@@ -51,7 +51,8 @@ from .precompute import tensors_to_csr
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BACKENDS", "RestFactorization", "TangentFactorization", "backend_available", "default_backend", "sparse_lu"]
+__all__ = ["BACKENDS", "RestFactorization", "TangentFactorization", "backend_available", "default_backend",
+           "sparse_lu"]
 
 #: Woodbury (low-rank) correction up to this many free dofs on the super-threshold elements'
 #: nodes; above it the tangent is assembled and factorised (compared in bench_tissue_step.py).
@@ -394,10 +395,15 @@ class TangentFactorization:
         self._lu_tangent = None
         logger.debug("factorised M + h C + h^2 K0 for h = %.4g s: %d free dofs", h, self._free_dofs.size)
 
-    def update(self, h: float) -> None:
-        """Prepare for a solve with step ``h`` at the force field's current state."""
+    def prepare(self, h: float) -> None:
+        """Factorise the rest matrix for step ``h`` now, if it is not yet (before the first frame,
+        not in it)."""
         if h != self._h:
             self._set_step(h)
+
+    def update(self, h: float) -> None:
+        """Prepare for a solve with step ``h`` at the force field's current state."""
+        self.prepare(h)
         ids = self.force_field.nonlinear_element_ids()
         # None: a law whose tangent is not assembled (hyperelastic); the rest factor only
         # preconditions it.
@@ -534,18 +540,12 @@ class RestFactorization(TangentFactorization):
 
     def update(self, h: float) -> None:
         """Prepare for the solve of the next frame with step ``h`` at the force field's state."""
-        if h != self._h:
-            self._set_step(h)
+        self.prepare(h)
         self.mode = "rest"
         ids = self.force_field.nonlinear_element_ids()
         # None: no assembled tangent (hyperelastic), the rest factor only approximates it
         self._approximate = ids is None or (
             ids.size > 0 and bool((self._free_index[3 * self.force_field.active_tets[ids]] >= 0).any()))
-
-    def prepare(self, h: float) -> None:
-        """Factorise the rest matrix for step ``h`` now (before the first frame, not in it)."""
-        if h != self._h:
-            self._set_step(h)
 
     def record_iterations(self, iterations: int) -> None:
         """Nothing to schedule: the factor never changes."""

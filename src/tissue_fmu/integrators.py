@@ -288,8 +288,9 @@ class BackwardEuler:
 
     Non-convergence within ``max_iterations`` is logged and reported in the statistics; a NaN
     raises TissueError.  ``budgeted=True`` makes ``max_iterations`` the frame's work budget (the
-    frame-budgeted step, see :mod:`tissue_fmu.lagged_factorization`): stopping there is the
-    design, so it is reported in the statistics only.
+    frame-budgeted step, with :class:`~tissue_fmu.factorization.RestFactorization`; docs/tissue.md):
+    stopping there is the design, so it is reported in the statistics only, and each solve starts
+    from zero.
     """
 
     def __init__(
@@ -383,7 +384,8 @@ class BackwardEuler:
             # A budgeted solve starts from zero: its dv is then a polynomial in P^-1 A applied to
             # P^-1 b (with one iteration, the step with the preconditioner's matrix), whereas a warm
             # start carries the residual a budget leaves into the next frame (at 5 N on the default
-            # wall, 1 and 2 iterations diverged from the extrapolated start and from the last dv).
+            # wall one iteration diverged from the extrapolated start and from the last dv, two from
+            # the extrapolated one).
             self.dv.fill(0.0)
         elif self.extrapolate:
             # initial guess: linear extrapolation of the last two solutions

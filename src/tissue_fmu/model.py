@@ -361,8 +361,8 @@ class TissueModel:
             raise TissueError(f"dt must be a finite number > 0 (got {dt!r}), e.g. 1/30")
         self.force_field.add_forces(self.displacement, self.velocity, np.zeros_like(self.displacement))
         preconditioner = getattr(self.integrator, "preconditioner", None)
-        if isinstance(preconditioner, TangentFactorization) and preconditioner._h != float(dt):
-            preconditioner._set_step(float(dt))
+        if isinstance(preconditioner, TangentFactorization):
+            preconditioner.prepare(float(dt))
 
     def set_contact_force(self, forces) -> None:
         """Nodal forces (N) on the surface nodes: (n_surface, 3) or flat (n_surface*3,), held until changed."""
@@ -511,6 +511,9 @@ class TissueModel:
         Jacobi integrator a factorisation of the same implicit matrix is built once per dt.
         ``tolerance``: relative residual of those solves (default: the model's cg_tolerance; a
         local model between frames can take a looser one). Does not change the model's results.
+        With the budgeted step (``implicit_step = "budgeted"``) W is the wall's at rest stiffness,
+        from cached columns of the rest factor: exact below the ETMM threshold, softer than the
+        stiffened wall above it, and never a solve to tolerance inside a frame.
         """
         if dt is None:
             dt = self.last_dt
@@ -640,7 +643,6 @@ class TissueModel:
     @property
     def solver_residual(self) -> float:
         return self._statistics.relative_residual
-
 
     @property
     def solver_converged(self) -> bool:
