@@ -40,6 +40,7 @@ from .mesh import validate_mesh
 from .precompute import (
     TensorMassTensors,
     lumped_masses,
+    remove_element_tensors,
     shape_gradients,
     tensor_mass_tensors,
     tensors_to_csr,
@@ -160,7 +161,8 @@ class TensorMassForceField:
             if np.ptp(tau) <= 1e-12 * tau.max():
                 self._tau = float(tau.mean())
             else:
-                self._damping = tensor_mass_tensors(points, self._tets, lam_v[act], mu_v[act],
+                self._lam_v, self._mu_v = lam_v[act], mu_v[act]
+                self._damping = tensor_mass_tensors(points, self._tets, self._lam_v, self._mu_v,
                                                     self._grads, self._volumes)
         m_a = act.size
         self._points = np.ascontiguousarray(points)
@@ -168,6 +170,9 @@ class TensorMassForceField:
         self._u_last = np.zeros((n, 3))
         self._work = np.empty((n, 3))
         self.screened_fraction = 0.0  # fraction of active tets examined exactly at the last add_forces
+        #: (m_active,) True for the active elements taken out by :meth:`remove_elements`
+        self.removed = np.zeros(m_a, dtype=bool)
+        self._node_elements = np.bincount(self._tets.reshape(-1), minlength=n)  # elements per node
         self._law = make_law(law, self)
         logger.info("tensor-mass force field: %d nodes, %d active tets, %d edges, law=%s",
                     n, m_a, self.stiffness.edges.shape[0], law)
@@ -300,6 +305,39 @@ class TensorMassForceField:
     def stiffness_matrix(self):
         """Rest (linear) stiffness as scipy CSR (3n x 3n)."""
         return tensors_to_csr(self.stiffness)
+
+    # ------------------------------------------------------------------------------------------
+    # topology change
+    # ------------------------------------------------------------------------------------------
+    def remove_elements(self, ids) -> np.ndarray:
+        """Take active elements ``ids`` (rows of :attr:`active_tets`) out of the wall: their blocks
+        leave the vertex and edge tensors (stiffness and damping) they were summed into, and their
+        gradients and volumes become zero, so no kernel (forces, tangents, energies, strains,
+        masses) sees them again. Only their own vertices and edges change. Returns the nodes left
+        without any element (to be taken out of the dynamics by the model)."""
+        m_a = self._tets.shape[0]
+        try:
+            ids = np.unique(np.asarray(ids, dtype=np.int64).reshape(-1))
+        except (TypeError, ValueError):
+            raise ForceFieldError(f"remove_elements: ids must be integers, rows of active_tets (got {ids!r})") from None
+        if ids.size and (ids[0] < 0 or ids[-1] >= m_a):
+            raise ForceFieldError(f"remove_elements: element ids must lie in [0, {m_a}) (got {ids[0]}..{ids[-1]}): "
+                                  "they are rows of active_tets")
+        ids = ids[~self.removed[ids]]
+        if ids.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        remove_element_tensors(self.stiffness, self._tets, self._grads, self._volumes, self._lam, self._mu, ids)
+        if self._damping is not None:
+            remove_element_tensors(self._damping, self._tets, self._grads, self._volumes, self._lam_v, self._mu_v,
+                                   ids)
+        self.removed[ids] = True
+        self._grads[ids] = 0.0
+        self._volumes[ids] = 0.0
+        self._candidates = self._candidates[~self.removed[self._candidates]]
+        self._law.remove_elements(ids)
+        nodes = self._tets[ids].reshape(-1)
+        np.subtract.at(self._node_elements, nodes, 1)
+        return np.unique(nodes[self._node_elements[nodes] == 0])
 
     # ------------------------------------------------------------------------------------------
     # diagnostics

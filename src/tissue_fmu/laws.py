@@ -100,6 +100,10 @@ class MaterialLaw:
     def stiffening_margin(self, strain: float) -> float:
         return 1.0
 
+    def remove_elements(self, ids) -> None:
+        """Elements ``ids`` left the wall (the force field zeroed their gradients and volumes and
+        took them out of the rest tensors); a law with its own per-element state forgets them."""
+
     def _uniform_damping(self, v, out, rest_v_scale: float = 0.0) -> None:
         scale = self._v_scale(v, rest_v_scale)
         if scale != 0.0:
@@ -168,6 +172,9 @@ class ETMMLaw(_StiffeningLaw):
     @property
     def nonlinear_fraction(self) -> float:
         return self._nonlinear_count / self._phi.shape[0]
+
+    def remove_elements(self, ids) -> None:
+        self._candidate_mask[ids] = 0  # never examined again (the edge screen reads this mask)
 
     def add_forces(self, u, v, out, rest_v_scale: float = 0.0) -> None:
         ff = self.ff

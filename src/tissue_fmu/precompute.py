@@ -25,6 +25,7 @@ __all__ = [
     "shape_gradients",
     "element_pair_blocks",
     "tensor_mass_tensors",
+    "remove_element_tensors",
     "tensor_mass_parts",
     "tensors_to_csr",
     "lumped_masses",
@@ -135,6 +136,27 @@ def tensor_mass_tensors(points, tets, lam, mu, grads=None, volumes=None) -> Tens
     edges = np.stack([unique_keys // n, unique_keys % n], axis=1).astype(np.int32)
     return TensorMassTensors(np.ascontiguousarray(vertex), edges, np.ascontiguousarray(edge_tensors),
                              inverse.reshape(-1, 6))
+
+
+def remove_element_tensors(t: TensorMassTensors, tets, grads, volumes, lam, mu, ids) -> None:
+    """Take the blocks of elements ``ids`` (rows of ``tets``, the tets ``t`` was built from) out of
+    its vertex and edge tensors, in place: the tensor-mass model's local topology change (Cotin,
+    Delingette and Ayache 2000), which touches only the elements' own vertices and edges, never a
+    global precomputation. An edge left without elements keeps a zero tensor."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if ids.size == 0:
+        return
+    if t.element_edges is None:
+        raise ValueError("these tensors do not record their elements' edges (element_edges)")
+    removed = tets[ids]
+    lam = np.broadcast_to(lam, volumes.shape)[ids]
+    mu = np.broadcast_to(mu, volumes.shape)[ids]
+    diag = element_pair_blocks(grads[ids], volumes[ids], lam, mu, _DIAG_PAIRS)
+    np.subtract.at(t.vertex, removed.reshape(-1), diag.reshape(-1, 3, 3))
+    blocks = element_pair_blocks(grads[ids], volumes[ids], lam, mu, _EDGE_PAIRS)
+    flip = removed[:, _EDGE_PAIRS[:, 0]] > removed[:, _EDGE_PAIRS[:, 1]]  # stored lower id first
+    blocks[flip] = np.swapaxes(blocks[flip], -1, -2)
+    np.subtract.at(t.edge_tensors, t.element_edges[ids].reshape(-1), blocks.reshape(-1, 3, 3))
 
 
 def tensor_mass_parts(points, tets, lam, mu):
