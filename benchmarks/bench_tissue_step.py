@@ -21,7 +21,9 @@ Printed:
   4. the compliance block for p = 4..16 contact nodes, relative to one step;
   5. the tangent-mode factorisation alternatives at the default wall's 5 N state (factor and solve
      times, GMRES iterations on the exact non-symmetric system), and the single-vector rest solve
-     at every size (what bounds the 0.5 N steps).
+     at every size (what bounds the 0.5 N steps);
+  6. a step in which elements fail (issue 32) against the same step without, from the same state:
+     the removal, the masses and the implicit step's refactorisation.
 
 Run: python benchmarks/bench_tissue_step.py [--steps 10] [--quick]
 """
@@ -190,11 +192,15 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10, help="timed steps per case (after 3 warm-up steps)")
     parser.add_argument("--quick", action="store_true", help="skip the largest wall and the 64x80x2 baseline run")
     parser.add_argument("--only", type=int, default=None,
-                        help="run only this section (0: the worst frames; 5: the tangent alternatives)")
+                        help="run only this section (0: the worst frames; 5: the tangent alternatives; 6: a "
+                             "step with a failure)")
     args = parser.parse_args()
     steps = args.steps
     if args.only == 0:
         worst_frames(aaa_mesh(), aaa_mesh(n_circumferential=64, n_axial=80, n_radial=2))
+        return
+    if args.only == 6:
+        failure_step(aaa_mesh(), aaa_mesh(n_circumferential=64, n_axial=80, n_radial=2))
         return
     if args.only == 5:
         sizes = [(32, 40, 2), (48, 60, 2), (64, 80, 2)] + ([] if args.quick else [(80, 100, 2)])
@@ -222,6 +228,8 @@ def main() -> None:
     compliance_cost(default, steps)
     # 5. tangent-mode alternatives and the rest solve
     tangent_alternatives(default, big, sizes)
+    # 6. a step with a failure
+    failure_step(default, big)
 
 
 def frame_costs(model: TissueModel, peak: float, frames: int, ramp: int,
@@ -503,6 +511,44 @@ def tangent_alternatives(default, big, sizes) -> None:
         superlu_ms = _best_ms(lambda: lu.solve(rhs, trans="T"), 5)[0]
         print(f"   {nc}x{na}x{nr}: {pc._free_dofs.size} free dofs, {' / '.join(f'{t:6.2f}' for t in times + [superlu_ms])} "
               f"(nnz(L) of SuperLU {lu.L.nnz}: {16e-6 * lu.L.nnz / superlu_ms:.1f} GB/s reading it twice)")
+
+
+def failure_step(default, big, repeat: int = 3) -> None:
+    """Section 6: the cost of a frame in which elements fail, against the same frame without, from
+    the same state (the wall loaded with 2 N for 12 frames; the failure stretch set just below the
+    largest stretch the next frame reaches, so that its most strained elements fail)."""
+    import logging
+
+    from tissue_fmu.failure import failed_elements
+
+    logging.getLogger("tissue_fmu.model").setLevel(logging.ERROR)  # the failure's log line, 2 x repeat times
+    print("\n6. a frame with a failure against the same frame without (ms, best of "
+          f"{repeat}; ETMM, 2 N, whole wall)")
+    print(f"{'case':46s} {'normal':>8s} {'failure':>8s} {'ratio':>6s} {'failed':>6s}")
+    for label, mesh in [("default wall", default), ("64x80x2 wall", big)]:
+        for step in ("exact", "budgeted"):
+            model = TissueModel(mesh, TissueParameters(law="etmm", viscosity=VISCOSITY, implicit_step=step,
+                                                       budget_iterations=4 if mesh is default else 1))
+            model.prepare(FRAME)
+            model.set_contact_force(patch_force(model, 2.0))
+            for k in range(12):
+                model.step(k * FRAME, FRAME)
+            probe = copy.deepcopy(model)
+            probe.step(12 * FRAME, FRAME)
+            ff, u = probe.force_field, probe.displacement
+            tension = np.sqrt(1.0 + 2.0 * ff.element_max_strain(u))
+            limit = float(np.sort(tension)[-5])  # the five most stretched elements fail
+            normal, failing = [], []
+            for _ in range(repeat):
+                for times, stretch in ((normal, None), (failing, limit)):
+                    m = copy.deepcopy(model)
+                    m._failure_stretch = stretch
+                    t0 = time.perf_counter()
+                    m.step(12 * FRAME, FRAME)
+                    times.append(1000.0 * (time.perf_counter() - t0))
+            failed = failed_elements(probe.force_field, probe.displacement, limit).size
+            print(f"{label + ', ' + step:46s} {min(normal):8.1f} {min(failing):8.1f} "
+                  f"{min(failing) / min(normal):6.1f} {failed:6d}")
 
 
 if __name__ == "__main__":

@@ -113,7 +113,8 @@ def test_an_ssp_tool_without_our_annotation_sees_the_structure(package, tmp_path
     tissue = root.find(f".//{{{ssp.SSD_NS}}}Component[@name='tissue']")
     values = {p.get("name"): (p[0].tag.removeprefix(SSV), p[0].get("value")) for p in tissue.iter(f"{SSV}Parameter")}
     assert values == {"law": ("String", "etmm"), "integrator": ("String", "implicit"), "viscosity": ("Real", "50.0"),
-                      "active_radius": ("Real", "0.03")}
+                      "active_radius": ("Real", "0.03"), "implicit_step": ("String", "budgeted"),
+                      "budget_iterations": ("Integer", "4")}
     arrays = {v.get("name"): v.text for v in tissue.iter(f"{{{ssp.SCENE_NS}}}Value")}
     assert arrays == {"active_center": "[0.022, 0.0, 0.065]"}
 

@@ -21,6 +21,7 @@ from .integrators import BackwardEuler, JacobiPreconditioner, StepStatistics, Sy
 from .factorization import RestFactorization, TangentFactorization
 from .materials import LAWS
 from .mesh import TetMesh, aaa_mesh, load_mesh
+from .failure import failed_elements, failure_stretch
 from .precompute import signed_volumes
 
 logger = logging.getLogger(__name__)
@@ -97,6 +98,10 @@ class TissueParameters:
     nonlinear_strain_threshold: float = 0.05
     rv_alpha: float = 0.174e6  # Pa, Raghavan-Vorp alpha
     rv_beta: float = 1.881e6  # Pa, Raghavan-Vorp beta
+    # Pa: elements whose equivalent uniaxial Cauchy stress reaches it fail and leave the wall
+    # (tissue_fmu.failure); 0: the wall never fails. tissue_fmu.failure.DEFAULT_FAILURE_STRESS is the
+    # measured value; the FMUs do not expose it until Contact follows a changing surface (issue 32).
+    failure_stress: float = 0.0
 
     def validate(self) -> None:
         """Raise TissueError (a ValueError) naming the first bad parameter and the fix."""
@@ -142,6 +147,8 @@ class TissueParameters:
                       hint="Raghavan-Vorp alpha in Pa, e.g. 0.174e6")
         _check_number("rv_beta", self.rv_beta, minimum=0.0,
                       hint="Raghavan-Vorp beta in Pa, e.g. 1.881e6")
+        _check_number("failure_stress", self.failure_stress, minimum=0.0,
+                      hint="the wall's failure stress in Pa, e.g. 1.0e6, or 0 for a wall that never fails")
 
 
 def _elements_in_sphere(mesh: TetMesh, sphere) -> np.ndarray:
@@ -271,6 +278,14 @@ class TissueModel:
         self._strain_warned = False     # the extreme-strain warning is given once
         self.last_dt: float | None = None  # size of the last step (default of compliance())
         self._compliance_factors: dict = {}  # dt -> TangentFactorization, when the integrator's cannot serve
+        # Failure (tissue_fmu.failure): the stretch limit, the elements that failed (mesh rows), the
+        # strain energy they held when they failed, and one record per failure
+        self._failure_stretch = (None if params.failure_stress == 0.0 else
+                                 failure_stretch(float(params.failure_stress), float(params.rv_alpha),
+                                                 float(params.rv_beta)))
+        self.failed = np.zeros(m, dtype=bool)
+        self.released_energy = 0.0
+        self.failures: list[dict] = []
         self.integrator = self._make_integrator()
         logger.info(
             "tissue model: %d nodes (%d fixed), %d/%d active tets, %d surface nodes, law=%s, integrator=%s",
@@ -405,6 +420,10 @@ class TissueModel:
                 f"{DIVERGENCE_FACTOR:g} x the mesh size {self._mesh_size:.3g} m; reduce the load or dt, "
                 f"or use law='etmm'"
             )
+        if self._failure_stretch is not None:  # before the deformation check: a torn element may be inverted
+            ids = failed_elements(self.force_field, self.displacement, self._failure_stretch)
+            if ids.size:
+                self._fail(ids, float(t) + float(dt), float(dt))
         self._check_deformation(t, dt)
         self._statistics = stats
         self.time = float(t) + float(dt)
@@ -420,7 +439,7 @@ class TissueModel:
         strain = self._max_strain = float(self.force_field.max_strain(self.displacement))
         if strain <= STRAIN_WARNING:
             return
-        tets = self.mesh.tets[self.active_elements]
+        tets = self.mesh.tets[self.active_elements & ~self.failed]
         deformed = signed_volumes(self.mesh.points + self.displacement, tets)
         inverted = int(np.count_nonzero(deformed * signed_volumes(self.mesh.points, tets) <= 0.0))
         if inverted or strain > STRAIN_DIVERGENCE:
@@ -438,8 +457,52 @@ class TissueModel:
                 "the range it is calibrated for; reduce the load or raise young_modulus",
                 strain, t + dt, STRAIN_WARNING, 100 * (math.sqrt(1 + 2 * STRAIN_WARNING) - 1), self.params.law)
 
+    def _fail(self, active_ids: np.ndarray, t: float, dt: float) -> None:
+        """Elements ``active_ids`` (rows of the force field's active tets) reached the failure stress:
+        take them out of the wall (tissue_fmu.forcefield.TensorMassForceField.remove_elements),
+        freeze the nodes left without an element, recompute the masses and refactorise the implicit
+        step once; their strain energy is counted as released."""
+        ff, u = self.force_field, self.displacement
+        before = ff.strain_energy(u)
+        nodes = np.unique(ff.active_tets[active_ids])
+        contact_force = float(np.linalg.norm(self._external_force[nodes].sum(axis=0)))
+        where = (self.mesh.points + u)[nodes].mean(axis=0)
+        orphans = ff.remove_elements(active_ids)
+        released = before - ff.strain_energy(u)
+        self.failed[ff._element_ids[active_ids]] = True
+        self.released_energy += released
+        self.frozen[orphans] = True
+        self.fixed[orphans] = True
+        self.velocity[orphans] = 0.0
+        self._external_force[orphans] = 0.0
+        self.masses = np.asarray(ff.lumped_masses(float(self.params.density)), dtype=np.float64)
+        self._critical_time_step = None
+        self._compliance_factors = {}
+        old = self.integrator
+        self.integrator = self._make_integrator()
+        if isinstance(old, BackwardEuler):
+            np.copyto(self.integrator.dv, old.dv)
+            np.copyto(self.integrator._dv_prev, old._dv_prev)
+            self.integrator.dv[orphans] = 0.0
+            self.integrator._dv_prev[orphans] = 0.0
+        self.prepare(dt)
+        record = {"time": t, "elements": int(active_ids.size), "failed_total": int(self.failed.sum()),
+                  "position": where.tolist(), "contact_force": contact_force, "released_energy": released,
+                  "orphaned_nodes": int(orphans.size)}
+        self.failures.append(record)
+        logger.warning(
+            "tissue: %d element(s) failed at t = %.4f s at (%.4f, %.4f, %.4f) m: the wall's failure stress "
+            "%.3g MPa was reached (contact force on them %.3g N); %d failed in all, %.3g J released",
+            active_ids.size, t, *where, self.params.failure_stress / 1e6, contact_force, record["failed_total"],
+            released)
+
+    @property
+    def perforated(self) -> bool:
+        """Whether any element has failed."""
+        return bool(self.failed.any())
+
     def reset(self) -> None:
-        """Back to rest: zero displacement, velocity and contact force."""
+        """Back to rest: zero displacement, velocity and contact force (failed elements stay failed)."""
         self.displacement.fill(0.0)
         self.velocity.fill(0.0)
         self._external_force.fill(0.0)
@@ -456,7 +519,9 @@ class TissueModel:
         Restoring it reproduces the run to solver tolerance; the implicit preconditioner's own
         state (which tangent it last factorised, its Woodbury cache) is not included, so the Krylov
         iterates may differ in the last digits.  For a bit-identical continuation copy the whole
-        model: ``copy.deepcopy(model)`` or ``pickle.loads(pickle.dumps(model))``.
+        model: ``copy.deepcopy(model)`` or ``pickle.loads(pickle.dumps(model))``. Failed elements are
+        not part of this state (a failure changes the model itself): a copy of the model is what
+        restores a run from before a failure.
         """
         state = {
             "time": self.time,
