@@ -32,6 +32,18 @@ def test_c_constants_counts_enums_as_c_does():
                                                  "x3": 17}
 
 
+def test_the_step_cost_bins_are_those_of_the_compiled_loop():
+    """The compiled loop bins the steps it times in C; the summary reads the bins in Python."""
+    from orchestration.run import step_costs
+
+    constants = compiled_loop.c_constants(compiled_loop.SOURCE.read_text())
+    assert constants["COST_LINEAR_BITS"] == step_costs.LINEAR_BITS
+    assert constants["COST_SUB_BITS"] == step_costs.SUB_BITS
+    # every bin's middle falls back in its bin, and the bins are contiguous and increasing
+    for index in range(0, step_costs.BINS - 1, 7):
+        assert step_costs.cost_bin(int(step_costs._bin_middle(index))) == index
+
+
 def test_the_compiled_loops_numbers_are_those_of_its_c_source():
     constants = compiled_loop.c_constants(compiled_loop.SOURCE.read_text())
     for name in ("OP_NOP", "OP_BEGIN", "OP_SET", "OP_STEP", "OP_GET", "OP_END", "OP_COPY", "OP_WINDOW", "OP_PACE",

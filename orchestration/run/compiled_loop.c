@@ -45,12 +45,15 @@ typedef struct {
     int64_t cost_over;
 } Component;
 
-/* The bin of a cost in ns, as orchestration.run.step_costs.cost_bin: unit bins below 128 ns, then 64
- * bins per octave (1.6 % wide). */
+/* The bin of a cost in ns, as orchestration.run.step_costs.cost_bin (LINEAR_BITS, SUB_BITS there):
+ * unit bins below 2^COST_LINEAR_BITS ns, then 2^COST_SUB_BITS bins per octave (1.6 % wide). */
+#define COST_LINEAR_BITS 7
+#define COST_SUB_BITS 6
 static int64_t cost_bin(int64_t ns) {
-    if (ns < 128) return ns < 0 ? 0 : ns;
+    const int64_t linear = (int64_t)1 << COST_LINEAR_BITS, per_octave = (int64_t)1 << COST_SUB_BITS;
+    if (ns < linear) return ns < 0 ? 0 : ns;
     int k = 63 - __builtin_clzll((unsigned long long)ns);
-    return 128 + (int64_t)(k - 7) * 64 + ((ns >> (k - 6)) & 63);
+    return linear + (int64_t)(k - COST_LINEAR_BITS) * per_octave + ((ns >> (k - COST_SUB_BITS)) & (per_octave - 1));
 }
 
 /* An input port (set from float64 values) or a group of observed ports of one type (read). */

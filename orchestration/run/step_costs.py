@@ -20,10 +20,13 @@ import numpy as np
 
 __all__ = ["StepCosts", "cost_bin"]
 
-_LINEAR = 128    # unit bins (ns) below this
-_SUB_BITS = 6    # 2^6 = 64 bins per octave above it
+#: unit bins (ns) below 2^LINEAR_BITS, then 2^SUB_BITS bins per octave (compiled_loop.c's COST_LINEAR_BITS
+#: and COST_SUB_BITS; tests/test_c_constants.py holds them equal)
+LINEAR_BITS = 7
+SUB_BITS = 6
+_LINEAR, _PER_OCTAVE = 1 << LINEAR_BITS, 1 << SUB_BITS
 #: bins up to 2^63 ns
-BINS = _LINEAR + (63 - 7) * (1 << _SUB_BITS)
+BINS = _LINEAR + (63 - LINEAR_BITS) * _PER_OCTAVE
 
 
 def cost_bin(ns: int) -> int:
@@ -31,17 +34,17 @@ def cost_bin(ns: int) -> int:
     if ns < _LINEAR:
         return max(ns, 0)
     k = ns.bit_length() - 1
-    return _LINEAR + (k - 7) * 64 + ((ns >> (k - _SUB_BITS)) & 63)
+    return _LINEAR + (k - LINEAR_BITS) * _PER_OCTAVE + ((ns >> (k - SUB_BITS)) & (_PER_OCTAVE - 1))
 
 
 def _bin_middle(index: int) -> float:
     """The middle of bin ``index``, in ns."""
     if index < _LINEAR:
         return float(index)
-    k, sub = divmod(index - _LINEAR, 64)
-    k += 7
-    width = 1 << (k - _SUB_BITS)
-    return ((64 + sub) << (k - _SUB_BITS)) + 0.5 * width
+    k, sub = divmod(index - _LINEAR, _PER_OCTAVE)
+    k += LINEAR_BITS
+    width = 1 << (k - SUB_BITS)
+    return ((_PER_OCTAVE + sub) << (k - SUB_BITS)) + 0.5 * width
 
 
 class StepCosts:
