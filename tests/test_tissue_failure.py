@@ -14,6 +14,7 @@ from tissue_fmu.failure import DEFAULT_FAILURE_STRESS, failed_elements, failure_
 from tissue_fmu.forcefield import TensorMassForceField
 from tissue_fmu.mesh import box_mesh
 from tissue_fmu.precompute import element_pair_blocks
+from tissue_statics import roller_dofs, solve_statics
 
 ALPHA, BETA = 0.174e6, 1.881e6
 
@@ -39,29 +40,14 @@ def _uniaxial_until_failure(divisions, law, increment):
     n = mesh.n_nodes
     ff = TensorMassForceField(mesh.points, mesh.tets, 6 * ALPHA, 0.49, law=law, rv_alpha=ALPHA, rv_beta=BETA)
     limit = failure_stretch(DEFAULT_FAILURE_STRESS, ALPHA, BETA)
-    rollers = np.concatenate([3 * mesh.node_sets["xmin"], 3 * mesh.node_sets["ymin"] + 1,
-                              3 * mesh.node_sets["zmin"] + 2])
     top = 3 * mesh.node_sets["zmax"] + 2
-    free = np.setdiff1d(np.arange(3 * n), np.union1d(rollers, top))
+    free = np.setdiff1d(np.arange(3 * n), np.union1d(roller_dofs(mesh), top))
     length = float(divisions[2])
     u = np.zeros(3 * n)
     previous = None
     for stretch in np.arange(1.0 + increment, 1.5, increment):
         u[top] = (stretch - 1.0) * length
-        for _ in range(40):
-            f = np.zeros((n, 3))
-            ff.add_forces(u.reshape(-1, 3), None, f)
-            residual = f.reshape(-1)[free]
-            if np.abs(residual).max() < 1e-10 * ALPHA:
-                break
-            columns = []
-            for dof in free:
-                e = np.zeros(3 * n)
-                e[dof] = 1.0
-                out = np.zeros((n, 3))
-                ff.consistent_tangent_matvec(e.reshape(-1, 3), out)
-                columns.append(out.reshape(-1)[free])
-            u[free] += np.linalg.solve(np.array(columns).T, residual)
+        f, _ = solve_statics(ff, u, free, 1e-10 * ALPHA, max_iterations=40)
         cauchy = stretch * -f.reshape(-1)[top].sum()  # reaction over the unit reference area, times l
         failed = failed_elements(ff, u.reshape(-1, 3), limit)
         if failed.size:

@@ -14,6 +14,7 @@ import scipy.sparse.linalg as spla
 
 from tissue_fmu.forcefield import TensorMassForceField, assemble_stiffness
 from tissue_fmu.mesh import box_mesh
+from tissue_statics import roller_dofs, solve_statics
 
 log = logging.getLogger(__name__)
 
@@ -38,11 +39,6 @@ def _face_load(mesh, face, traction):
         area = 0.5 * np.linalg.norm(np.cross(p[1] - p[0], p[2] - p[0]))
         f[t] += np.asarray(traction) * area / 3.0
     return f
-
-
-def _roller_dofs(mesh):
-    """Symmetry BCs: u_x = 0 on xmin, u_y = 0 on ymin, u_z = 0 on zmin (flat dof ids)."""
-    return np.unique(np.concatenate([3 * mesh.node_sets[f"{a}min"] + i for i, a in enumerate("xyz")]))
 
 
 # ---------------------------------------------------------------- linear exactness
@@ -73,7 +69,7 @@ def test_uniaxial_cube_with_rollers():
     side, delta, young, nu = 0.02, 1e-4, 1.044e6, 0.45
     mesh = box_mesh(size=(side,) * 3, divisions=(3, 3, 3))
     k = assemble_stiffness(mesh.points, mesh.tets, young, nu).tocsr()
-    fixed = _roller_dofs(mesh)
+    fixed = roller_dofs(mesh)
     top = 3 * mesh.node_sets["zmax"] + 2
     prescribed = np.union1d(fixed, top)
     u = np.zeros(3 * mesh.n_nodes)
@@ -133,28 +129,13 @@ def _uniaxial_nominal_stress(law, threshold, stretches, nu=0.49):
     ff = TensorMassForceField(mesh.points, mesh.tets, E_RV, nu, law=law, rv_alpha=ALPHA, rv_beta=BETA,
                               nonlinear_strain_threshold=threshold)
     top = 3 * mesh.node_sets["zmax"] + 2
-    prescribed = np.union1d(_roller_dofs(mesh), top)
+    prescribed = np.union1d(roller_dofs(mesh), top)
     free = np.setdiff1d(np.arange(3 * n), prescribed)
     u = np.zeros(3 * n)
     stresses, iterations = [], []
     for stretch in stretches:
         u[top] = stretch - 1.0
-        for it in range(30):
-            f = np.zeros((n, 3))
-            ff.add_forces(u.reshape(-1, 3), None, f)
-            residual = f.reshape(-1)[free]
-            if np.abs(residual).max() < 1e-12 * E_RV:
-                break
-            cols = []
-            for dof in free:
-                e = np.zeros(3 * n)
-                e[dof] = 1.0
-                out = np.zeros((n, 3))
-                ff.consistent_tangent_matvec(e.reshape(-1, 3), out)
-                cols.append(out.reshape(-1)[free])
-            u[free] += np.linalg.solve(np.array(cols).T, residual)
-        else:
-            raise AssertionError(f"{law}: Newton did not converge at stretch {stretch}")
+        f, it = solve_statics(ff, u, free, 1e-12 * E_RV)
         iterations.append(it)
         stresses.append(-f.reshape(-1)[top].sum())  # reaction = -internal force on the loaded face
     return np.array(stresses), iterations
@@ -205,7 +186,7 @@ def test_kelvin_voigt_creep_of_a_bar():
     n = mesh.n_nodes
     ff = TensorMassForceField(mesh.points, mesh.tets, young, nu, viscosity=eta)
     f_ext = _face_load(mesh, "zmax", (0.0, 0.0, sigma)).reshape(-1)
-    free = np.setdiff1d(np.arange(3 * n), _roller_dofs(mesh))
+    free = np.setdiff1d(np.arange(3 * n), roller_dofs(mesh))
 
     def dense(matvec):
         cols = []

@@ -603,12 +603,6 @@ class TissueModel:
         dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
         integrator = self.integrator
         ff = self.force_field
-        # The tangent at the current state, as the next step will take it (same inputs, same result).
-        scratch = np.zeros_like(self.displacement)
-        ff.add_forces(self.displacement, self.velocity, scratch)
-        consistent = getattr(ff, "nonlinear_fraction", 0.0) > 0.0
-        if isinstance(integrator, BackwardEuler):
-            consistent = consistent and integrator.consistent_tangent
         pc = None
         if (isinstance(integrator, BackwardEuler) and isinstance(integrator.preconditioner, TangentFactorization)
                 and (integrator.preconditioner._h is None or integrator.preconditioner._h == h)):
@@ -622,19 +616,24 @@ class TissueModel:
         if isinstance(pc, RestFactorization):
             # the budgeted step: the wall's compliance at rest stiffness from cached columns (exact
             # below the ETMM threshold, softer than the stiffened wall above it), never a solve to
-            # tolerance inside the frame
+            # tolerance inside the frame, nor the tangent at the current state
             pc.prepare(h)
-            w = np.zeros((dofs.size, dofs.size))
-            w[np.ix_(free_cols, free_cols)] = (h * h) * pc.rest_inverse_block(nodes)
-            return w
-        pc.update(h)
-        x = pc.inverse_block(nodes)  # exact modes: cached columns of A_0^-1 (+ Woodbury), O(k p)
-        if x is None:  # a lagging tangent factor or hyperelastic: solve, refine against the true matrix
-            rhs = np.zeros((pc.free_dofs.size, free_cols.size))
-            rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
-            x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent,
-                                        tolerance=float(self.params.cg_tolerance if tolerance is None else tolerance))
-            x = x[free_index[dofs[free_cols]], :]
+            x = pc.rest_inverse_block(nodes)
+        else:
+            # The tangent at the current state, as the next step will take it (same inputs, same result).
+            ff.add_forces(self.displacement, self.velocity, np.zeros_like(self.displacement))
+            consistent = getattr(ff, "nonlinear_fraction", 0.0) > 0.0
+            if isinstance(integrator, BackwardEuler):
+                consistent = consistent and integrator.consistent_tangent
+            pc.update(h)
+            x = pc.inverse_block(nodes)  # exact modes: cached columns of A_0^-1 (+ Woodbury), O(k p)
+            if x is None:  # a lagging tangent factor or hyperelastic: solve, refine against the true matrix
+                rhs = np.zeros((pc.free_dofs.size, free_cols.size))
+                rhs[free_index[dofs[free_cols]], np.arange(free_cols.size)] = 1.0
+                x = self._refine_compliance(pc, rhs, pc.solve_matrix(rhs), h, consistent,
+                                            tolerance=float(self.params.cg_tolerance if tolerance is None
+                                                            else tolerance))
+                x = x[free_index[dofs[free_cols]], :]
         w = np.zeros((dofs.size, dofs.size))
         w[np.ix_(free_cols, free_cols)] = (h * h) * x
         return w
